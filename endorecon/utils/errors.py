@@ -1,0 +1,35 @@
+"""User-facing errors.
+
+Every error a user can cause by bad input is an :class:`InputError` that names
+the offending file or config key and says what to do.  The task entry points
+print these as one clean message (no traceback) and exit with status 2.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class EndoreconError(RuntimeError):
+    """Base class of errors that endorecon reports to the user without a traceback."""
+
+
+class InputError(EndoreconError, ValueError):
+    """Bad input: a missing/corrupt file, a wrong size, an unknown key.
+
+    Args:
+        what: what is wrong, e.g. ``"mask has size 100x100, frames are 256x320"``.
+        path: the file or directory concerned (optional).
+        fix: what the user should do about it (optional).
+    """
+
+    def __init__(self, what: str, path: str | Path | None = None, fix: str | None = None):
+        self.what = what
+        self.path = None if path is None else Path(path)
+        self.fix = fix
+        msg = what
+        if path is not None:
+            msg = f"{path}: {what}"
+        if fix:
+            msg += f"\n  fix: {fix}"
+        super().__init__(msg)
