@@ -1,0 +1,5 @@
+"""Lightning callbacks of the bootstrapping loop."""
+
+from endorecon.callbacks.bootstrap import BootstrapCallback
+
+__all__ = ["BootstrapCallback"]

@@ -1,0 +1,25 @@
+"""Depth fusion: adaptive TSDF (std-driven truncation, exponential averaging) and Open3D's plain TSDF.
+
+* ``kernel``: the per-voxel maths, pure torch.
+* ``tsdf``: ``AdaptiveTSDF`` / ``PlainTSDF`` volumes on Open3D's VoxelBlockGrid.
+* ``ply``: mesh PLY with a per-vertex ``std`` property.
+* ``run``: ``build_fusion(cfg, median_depth)`` and the ``fuse_frames`` stage.
+"""
+
+from endorecon.fusion.kernel import averaging_rate, integrate_blocks, truncation
+from endorecon.fusion.ply import read_mesh_ply, write_mesh_ply
+from endorecon.fusion.run import build_fusion, fuse_frames, median_valid_depth
+from endorecon.fusion.tsdf import AdaptiveTSDF, PlainTSDF
+
+__all__ = [
+    "AdaptiveTSDF",
+    "PlainTSDF",
+    "build_fusion",
+    "fuse_frames",
+    "median_valid_depth",
+    "averaging_rate",
+    "truncation",
+    "integrate_blocks",
+    "read_mesh_ply",
+    "write_mesh_ply",
+]

@@ -23,7 +23,8 @@ def sample_bilinear(image: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor
         uv: (B, h, w, 2) pixel coordinates (u = column, v = row).
     Returns:
         values: (B, C, h, w).
-        inside: (B, 1, h, w) bool, True where uv lies within the pixel centres' hull [0, W-1] x [0, H-1].
+        inside: (B, 1, h, w) bool, True where uv lies within the pixel centres' hull [0, W-1] x [0, H-1]
+            (± 1e-4 pixel).
     """
     B, C, H, W = check_shape(image, "image", (None, None, None, None))
     check_shape(uv, "uv", (B, None, None, 2))
@@ -32,7 +33,9 @@ def sample_bilinear(image: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor
     gy = 2.0 * uv[..., 1] / max(H - 1, 1) - 1.0
     grid = torch.stack([gx, gy], dim=-1).to(image.dtype)
     out = F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= W - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= H - 1)
+    # A small tolerance so that a point on a border pixel's centre does not flip with round-off.
+    tol = 1e-4
+    inside = (uv[..., 0] >= -tol) & (uv[..., 0] <= W - 1 + tol) & (uv[..., 1] >= -tol) & (uv[..., 1] <= H - 1 + tol)
     return out, inside[:, None]
 
 

@@ -1,0 +1,126 @@
+"""Training throughput of the depth network at 128x160 on this machine, and the cost of the losses.
+
+Two steps are timed alternately (interleaved, after warm-up steps, medians reported):
+
+* ``full``: the DepthModule's training computation: network on both frames of B pairs,
+  Depth Scaling Layer, the four NLL losses in both directions (dense simulation active),
+  backward, optimizer step;
+* ``net``: the same network forward + backward (loss = mean of the outputs) + optimizer step.
+
+The difference is the cost of the scaling layer and the four losses (with their warps).
+
+    .venv/bin/python benchmarks/train_throughput.py                       # default CPU model
+    .venv/bin/python benchmarks/train_throughput.py --model conf/model/fcdensenet57.yaml
+    .venv/bin/python benchmarks/train_throughput.py --set net.growth_rate=8 --set net.down_layers=[2,2,2,2,2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from endorecon.geometry import flow_from_depth, invert_pose  # noqa: E402
+from endorecon.module import DepthModule  # noqa: E402
+from endorecon.networks import count_parameters  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def synthetic_batch(B: int, H: int, W: int, seed: int = 0) -> dict:
+    """Random texture, a fronto-parallel plane at depth 5, camera j moved sideways; 2 % sparse points."""
+    g = torch.Generator().manual_seed(seed)
+    K = torch.tensor([[0.8 * W, 0.0, (W - 1) / 2], [0.0, 0.8 * W, (H - 1) / 2], [0.0, 0.0, 1.0]]).expand(B, 3, 3)
+    T = torch.eye(4).repeat(B, 1, 1)
+    T[:, 0, 3] = 0.3
+    depth = torch.full((B, 1, H, W), 5.0)
+    mask = torch.ones(B, 1, H, W, dtype=torch.bool)
+
+    def pts():
+        return torch.rand(B, 1, H, W, generator=g) < 0.02
+
+    vi, vj, si = pts(), pts(), torch.zeros(B, 1, H, W, dtype=torch.bool)
+    si[..., H // 4 : -H // 4, W // 4 : -W // 4] = True
+    return {
+        "image_i": torch.rand(B, 3, H, W, generator=g), "image_j": torch.rand(B, 3, H, W, generator=g),
+        "mask_i": mask, "mask_j": mask.clone(), "K": K.clone(), "cam_j_from_cam_i": T,
+        "sparse_depth_i": depth * vi, "sparse_depth_j": depth * vj, "sparse_valid_i": vi, "sparse_valid_j": vj,
+        "sparse_flow_ij": flow_from_depth(depth, K, T)[0] * vi, "sparse_flow_valid_ij": vi,
+        "sparse_flow_ji": flow_from_depth(depth, K, invert_pose(T))[0] * vj, "sparse_flow_valid_ji": vj,
+        "sim_depth_i": depth.clone(), "sim_depth_j": depth.clone(), "sim_valid_i": si, "sim_valid_j": si.clone(),
+        "index_i": torch.arange(B), "index_j": torch.arange(B) + 1, "has_sim": torch.ones(B, dtype=torch.bool),
+    }  # fmt: skip
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", default=str(ROOT / "conf/model/fcdensenet_cpu.yaml"))
+    ap.add_argument("--loss", default=str(ROOT / "conf/loss/nll.yaml"))
+    ap.add_argument("--set", action="append", default=[], help="dotted override of the model config, e.g. net.growth_rate=8")
+    ap.add_argument("--pairs", type=int, default=4, help="pairs per batch (images per step = 2x)")
+    ap.add_argument("--height", type=int, default=128)
+    ap.add_argument("--width", type=int, default=160)
+    ap.add_argument("--warmup", type=int, default=10)
+    ap.add_argument("--iters", type=int, default=10)
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
+    args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    model_cfg = OmegaConf.merge(OmegaConf.load(args.model), OmegaConf.from_dotlist(args.set))
+    torch.manual_seed(0)
+    module = DepthModule(model_cfg, OmegaConf.load(args.loss))
+    module.train()
+    net = module.net
+    opt = torch.optim.AdamW(module.parameters(), lr=1e-5)
+    batch = synthetic_batch(args.pairs, args.height, args.width)
+    images = torch.cat([batch["image_i"], batch["image_j"]])
+    masks = torch.cat([batch["mask_i"], batch["mask_j"]])
+
+    def full():
+        parts = module.compute_losses(batch)
+        total, _ = module.total_loss(parts, warmup=False)
+        total.backward()
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+        return total
+
+    def net_only():
+        d, s = net(images, masks)
+        (d.mean() + s.mean()).backward()
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+
+    t_full, t_net = [], []
+    for k in range(args.warmup + args.iters):
+        t0 = time.perf_counter()
+        total = full()
+        t1 = time.perf_counter()
+        net_only()
+        t2 = time.perf_counter()
+        if not torch.isfinite(total):
+            raise RuntimeError(f"non-finite loss at step {k}")
+        if k >= args.warmup:
+            t_full.append(t1 - t0)
+            t_net.append(t2 - t1)
+    n_img = 2 * args.pairs
+    mf, mn = statistics.median(t_full), statistics.median(t_net)
+    print(f"model {args.model} {' '.join(args.set)}")
+    print(f"parameters {count_parameters(net):,}; {args.height}x{args.width}; {args.pairs} pairs = {n_img} images/step; "
+          f"torch threads {torch.get_num_threads()}; load avg {os.getloadavg()[0]:.1f}")
+    print(f"full training step  : median {mf:.3f} s  -> {n_img / mf:.2f} images/s  (min {min(t_full):.3f} s)")
+    print(f"network fwd+bwd+step: median {mn:.3f} s  -> {n_img / mn:.2f} images/s  (min {min(t_net):.3f} s)")
+    rel = [(f - n) / n for f, n in zip(t_full, t_net)]
+    print(f"scaling + four losses cost {100 * (mf - mn) / mn:+.1f} % of the network step "
+          f"(median of interleaved per-step ratios {100 * statistics.median(rel):+.1f} %)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,128 @@
+"""The end of a bootstrapping iteration, as a Lightning callback.
+
+At ``on_train_end`` every sequence (training patients and the held-out one) is
+run through :func:`endorecon.tasks.pipeline.refine_sequence`: depth inference,
+adaptive fusion, simulated depth, failure detection, dense PGO, fusion again.
+The held-out patient's mesh is copied to the iteration dir and, when its CT
+exists, evaluated against it.  ``metrics.json`` is written last: it marks the
+iteration complete.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+
+from endorecon.tasks import pipeline
+from endorecon.utils.io import atomic_path, atomic_write_text
+
+log = logging.getLogger(__name__)
+
+
+def _scalar(v):
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return None
+
+
+class BootstrapCallback(L.Callback):
+    def __init__(self, cfg, prepared, it_dir: Path, info):
+        self.cfg = cfg
+        self.prepared = prepared
+        self.it_dir = Path(it_dir)
+        self.info = info
+        self.metrics: dict | None = None
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not trainer.is_global_zero:
+            return
+        t_start = time.perf_counter()
+        cfg, it_dir = self.cfg, self.it_dir
+        train_metrics = {k: _scalar(v) for k, v in trainer.callback_metrics.items()}
+        summaries = []
+        rows = ["sequence,frame,dense_simulation,sparse_flow,depth_consistency,flagged,reason"]
+        test_seq = None
+        for prep in self.prepared:
+            seq = prep.seq
+            sdir = it_dir / "sequences" / pipeline._slug(seq.name)
+            if (sdir / "summary.json").is_file():
+                summary = json.loads((sdir / "summary.json").read_text())
+            else:
+                depth, std, colors = pipeline.infer_depth(pl_module, seq, prep.cache)
+                summary = pipeline.refine_sequence(cfg, seq, prep.cache, depth, std, colors, prep.excluded, sdir)
+            summaries.append(summary)
+            csv = (sdir / "failures.csv").read_text().splitlines()
+            rows += [f"{seq.name},{line}" for line in csv[1:]]
+            if seq.patient == int(cfg.fold) and test_seq is None:
+                test_seq = (prep, sdir)
+        atomic_write_text(it_dir / "failures.csv", "\n".join(rows) + "\n")
+
+        evaluation = None
+        if test_seq is not None:
+            prep, sdir = test_seq
+            shutil.copyfile(sdir / "poses.txt", it_dir / "poses.txt")
+            with atomic_path(it_dir / "mesh.ply") as tmp:
+                shutil.copyfile(sdir / "mesh.ply", tmp)
+            if cfg.bootstrap.evaluate:
+                evaluation = self._evaluate(prep.seq, sdir)
+        self.metrics = dict(
+            iteration=self.it_dir.name,
+            fold=int(cfg.fold),
+            train=train_metrics,
+            sequences=summaries,
+            n_flagged=int(sum(s["n_flagged"] for s in summaries)),
+            evaluation=evaluation,
+            bootstrap_s=time.perf_counter() - t_start,
+        )
+        self._log_tensorboard(trainer, summaries, evaluation)
+        atomic_write_text(it_dir / "metrics.json", json.dumps(self.metrics, indent=2) + "\n")
+
+    def _evaluate(self, seq, sdir: Path) -> dict | None:
+        """The held-out mesh against the patient's CT (evaluation is the only reader of ground truth)."""
+        from endorecon.data.dataset import load_ground_truth
+        from endorecon.data.sequence import read_poses_txt
+        from endorecon.evaluation import evaluate_mesh
+        from endorecon.geometry import camera_centers
+
+        gt = load_ground_truth(self.info.root, seq.patient, seq.name.split("/")[-1])
+        if gt.mesh_path is None:
+            return None
+        _, poses = read_poses_txt(sdir / "poses.txt")
+        ok = np.isfinite(poses).all(axis=(1, 2))
+        centers = camera_centers(torch.from_numpy(poses[ok])).numpy()
+        gt_centers = camera_centers(torch.from_numpy(gt.cam_from_world[ok])).numpy()
+        return evaluate_mesh(sdir / "mesh.ply", gt.mesh_path, self.it_dir / "evaluation",
+                             cam_centers=centers, gt_cam_centers=gt_centers)
+
+    def _log_tensorboard(self, trainer, summaries, evaluation) -> None:
+        exp = getattr(trainer.logger, "experiment", None) if trainer.logger else None
+        if exp is None or not hasattr(exp, "add_scalar"):
+            return
+        step = trainer.global_step
+        exp.add_scalar("bootstrap/flagged_frames", sum(s["n_flagged"] for s in summaries), step)
+        for s in summaries:
+            if s.get("pgo", {}).get("loss_after") is not None:
+                exp.add_scalar(f"bootstrap/pgo_loss_after/{s['sequence']}", s["pgo"]["loss_after"], step)
+        if evaluation:
+            for k in ("mean_mm", "median_mm", "p95_mm", "max_mm"):
+                if k in evaluation:
+                    exp.add_scalar(f"evaluation/{k}", evaluation[k], step)
+        try:
+            import open3d as o3d
+
+            mesh = o3d.io.read_triangle_mesh(str(self.it_dir / "mesh.ply"))
+            v = torch.from_numpy(np.asarray(mesh.vertices, np.float32))[None]
+            f = torch.from_numpy(np.asarray(mesh.triangles, np.int32))[None]
+            c = torch.from_numpy((np.asarray(mesh.vertex_colors) * 255).astype(np.uint8))[None]
+            if v.shape[1] and c.shape[1] == v.shape[1]:
+                exp.add_mesh("bootstrap/mesh", vertices=v, faces=f, colors=c, global_step=step)
+        except Exception as e:  # the mesh plugin is a nicety; never fail an iteration over it
+            log.warning("could not log the mesh to TensorBoard: %s", e)

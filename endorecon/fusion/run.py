@@ -1,0 +1,128 @@
+"""Fusion stage: build a TSDF volume from config and fuse a stream of frames into ``mesh.ply``."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Iterable, Mapping
+from itertools import chain
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from endorecon.fusion.tsdf import AdaptiveTSDF, PlainTSDF
+from endorecon.utils.errors import InputError
+
+__all__ = ["build_fusion", "fuse_frames", "median_valid_depth"]
+
+log = logging.getLogger(__name__)
+
+
+def _get(cfg, key, default=None):
+    if isinstance(cfg, Mapping):
+        return cfg.get(key, default)
+    return getattr(cfg, key, default) if hasattr(cfg, key) else default
+
+
+def median_valid_depth(depth, mask=None) -> float:
+    """Median of the finite, positive depths of one (H, W) frame (NaN when none)."""
+    d = torch.as_tensor(np.asarray(depth) if not isinstance(depth, torch.Tensor) else depth).float().reshape(-1)
+    ok = torch.isfinite(d) & (d > 0)
+    if mask is not None:
+        m = mask if isinstance(mask, torch.Tensor) else torch.as_tensor(np.asarray(mask))
+        ok &= m.reshape(-1).bool()
+    return float(d[ok].median()) if bool(ok.any()) else float("nan")
+
+
+def build_fusion(cfg_fusion, median_depth: float | None = None) -> AdaptiveTSDF | PlainTSDF:
+    """Volume from the ``fusion`` config group (``conf/fusion/{adaptive,plain}.yaml``).
+
+    Args:
+        cfg_fusion: mapping / DictConfig with ``name`` (adaptive | plain) and the keys of those files.
+        median_depth: median valid depth of the sequence, in its units; sets the
+            voxel (``voxel_fraction`` x it) when ``voxel_size`` is null and the
+            depth cut-off (``depth_max_factor`` x it).
+    """
+    name = _get(cfg_fusion, "name", "adaptive")
+    voxel = _get(cfg_fusion, "voxel_size")
+    med = None if median_depth is None else float(median_depth)
+    if voxel is None:
+        if med is None or not (math.isfinite(med) and med > 0):
+            raise InputError(f"fusion.voxel_size is null and the median depth ({median_depth}) is not a positive number",
+                             fix="set fusion.voxel_size, or fuse frames with valid depth")
+        voxel = float(_get(cfg_fusion, "voxel_fraction", 0.01)) * med
+    factor = _get(cfg_fusion, "depth_max_factor")
+    depth_max = float("inf")
+    if factor is not None and med is not None and math.isfinite(med) and med > 0:
+        depth_max = float(factor) * med
+    common = dict(
+        voxel_size=float(voxel),
+        depth_max=depth_max,
+        block_resolution=int(_get(cfg_fusion, "block_resolution", 8)),
+        block_count=int(_get(cfg_fusion, "block_count", 20000)),
+        mesh_weight_threshold=float(_get(cfg_fusion, "mesh_weight_threshold", 1.0)),
+        device=str(_get(cfg_fusion, "device", "auto")),
+    )
+    if name == "adaptive":
+        return AdaptiveTSDF(
+            c1=float(_get(cfg_fusion, "c1", 0.1)),
+            c2=float(_get(cfg_fusion, "c2", 0.8)),
+            trunc_std_multiplier=float(_get(cfg_fusion, "trunc_std_multiplier", 3.0)),
+            trunc_min_voxels=float(_get(cfg_fusion, "trunc_min_voxels", 6.0)),
+            trunc_max_voxels=float(_get(cfg_fusion, "trunc_max_voxels", 24.0)),
+            std_mode=str(_get(cfg_fusion, "std_mode", "propagate")),
+            compile=bool(_get(cfg_fusion, "compile", False)),
+            **common,
+        )
+    if name == "plain":
+        return PlainTSDF(trunc_voxels=float(_get(cfg_fusion, "trunc_voxels", 6.0)), **common)
+    raise InputError(f"unknown fusion.name {name!r}", fix="use fusion=adaptive or fusion=plain")
+
+
+def fuse_frames(cfg_fusion, frames_iter: Iterable[Mapping], out_path: str | Path,
+                median_depth: float | None = None, total: int | None = None) -> Path:
+    """Fuse every frame of ``frames_iter`` and write the mesh to ``out_path`` (PLY, atomic).
+
+    Skips all work when ``out_path`` exists.
+
+    Args:
+        cfg_fusion: the ``fusion`` config group.
+        frames_iter: yields dicts ``{depth (H,W), std (H,W), color (H,W,3) in [0,1],
+            K (3,3) pixel-centre, cam_from_world (4,4), mask (H,W) bool | None}``.
+        out_path: mesh file to write (``mesh.ply``).
+        median_depth: the sequence's median valid depth; None -> that of the first frame.
+        total: number of frames, for the progress bar (default: ``len(frames_iter)`` if defined).
+    """
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    out_path = Path(out_path)
+    if out_path.exists():
+        log.info("fusion: %s exists, skipping", out_path)
+        return out_path
+    if total is None and hasattr(frames_iter, "__len__"):
+        total = len(frames_iter)  # type: ignore[arg-type]
+    it = iter(frames_iter)
+    try:
+        first = next(it)
+    except StopIteration:
+        raise InputError("fusion: no frames to fuse", out_path, fix="check the failure flags / registered frames") from None
+    if median_depth is None:
+        median_depth = median_valid_depth(first["depth"], first.get("mask"))
+    volume = build_fusion(cfg_fusion, median_depth)
+    t0 = time.perf_counter()
+    n = 0
+    with Progress(TextColumn("fusion"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True) as bar:
+        task = bar.add_task("fuse", total=total)
+        for fr in chain([first], it):
+            for key in ("depth", "color", "K", "cam_from_world"):
+                if key not in fr:
+                    raise InputError(f"fusion: frame {n} has no {key!r}", fix="yield dicts with depth, std, color, K, cam_from_world, mask")
+            volume.integrate(fr["depth"], fr.get("std"), fr["color"], fr["K"], fr["cam_from_world"], fr.get("mask"))
+            n += 1
+            bar.advance(task)
+    dt = time.perf_counter() - t0
+    volume.save_mesh(out_path)
+    log.info("fusion: %d frames in %.1f s (%.1f frames/s), voxel %.4g -> %s", n, dt, n / max(dt, 1e-9), volume.voxel_size, out_path)
+    return out_path

@@ -1,0 +1,232 @@
+"""The four Gaussian negative log-likelihood losses of the depth network.
+
+Per element, with predicted mean μ, variance σ² and observation x,
+
+    nll = 0.5·log(σ² + eps) + (x − μ)² / (2·(σ² + eps))
+
+i.e. −log N(x; μ, σ²) without its constant 0.5·log(2π) (dropped everywhere:
+it shifts every value and no gradient).  eps = 1e-8 keeps it finite at σ = 0.
+Identical x and μ give the minimum over x of 0.5·log(σ² + eps).
+
+Reductions (every loss): ``"none"`` returns (B,): per sample, the mean of the
+per-pixel NLL over its valid pixels (0 where a sample has none);
+``"mean"`` returns a scalar: the sum over every valid pixel of the batch divided
+by their number (0 if none).  Invalid pixels never contribute, neither to the
+value nor to the gradient, even if they hold NaN or inf: inputs are replaced by
+safe constants there *before* any arithmetic.
+
+Poses and intrinsics are plain tensor inputs and every loss is differentiable
+w.r.t. them (dense pose graph optimisation uses them per frame with poses as
+variables).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from endorecon.geometry import flow_from_depth, unproject, warp_depth
+from endorecon.geometry._checks import check_shape
+
+_REDUCTIONS = ("mean", "none")
+
+
+def _safe(x: torch.Tensor, valid: torch.Tensor, fill: float) -> torch.Tensor:
+    """x where valid, ``fill`` elsewhere (no NaN/inf from invalid pixels reaches arithmetic or gradients)."""
+    return torch.where(valid, x, torch.full_like(x, fill))
+
+
+def _reduce(per_pixel: torch.Tensor, valid: torch.Tensor, reduction: str) -> torch.Tensor:
+    """per_pixel, valid: (B, 1, H, W) -> scalar ("mean") or (B,) ("none")."""
+    if reduction not in _REDUCTIONS:
+        raise ValueError(f"reduction must be one of {_REDUCTIONS}, got {reduction!r}")
+    v = valid.to(per_pixel.dtype)
+    total = (per_pixel * v).flatten(1).sum(1)
+    count = v.flatten(1).sum(1)
+    if reduction == "none":
+        return total / count.clamp(min=1)
+    return total.sum() / count.sum().clamp(min=1)
+
+
+def gaussian_nll(
+    x: torch.Tensor, mu: torch.Tensor, var: torch.Tensor, eps: float = 1e-8
+) -> torch.Tensor:
+    """Element-wise 0.5·log(var + eps) + (x − μ)²/(2(var + eps)), same shape as the inputs."""
+    v = var + eps
+    return 0.5 * torch.log(v) + (x - mu) ** 2 / (2 * v)
+
+
+def _check_map(x: torch.Tensor, name: str, ref: tuple, channels: int = 1) -> None:
+    check_shape(x, name, (ref[0], channels, ref[2], ref[3]))
+
+
+def _pixel_nll(
+    depth: torch.Tensor, std: torch.Tensor, obs: torch.Tensor, obs_valid: torch.Tensor, eps: float, reduction: str
+) -> torch.Tensor:
+    shape = check_shape(depth, "depth", (None, 1, None, None))
+    _check_map(std, "std", shape)
+    _check_map(obs, "observed depth", shape)
+    _check_map(obs_valid, "observed validity", shape)
+    valid = obs_valid.bool() & torch.isfinite(obs) & torch.isfinite(depth) & torch.isfinite(std)
+    nll = gaussian_nll(_safe(obs, valid, 1.0), _safe(depth, valid, 1.0), _safe(std, valid, 1.0) ** 2, eps)
+    return _reduce(nll, valid, reduction)
+
+
+def sparse_depth_loss(
+    depth: torch.Tensor,
+    std: torch.Tensor,
+    sparse_depth: torch.Tensor,
+    sparse_valid: torch.Tensor,
+    eps: float = 1e-8,
+    reduction: str = "mean",
+) -> torch.Tensor:
+    """Sparse Depth loss: NLL of the SfM depth under the predicted N(depth, std²) at valid sparse points.
+
+    Args:
+        depth, std: (B, 1, H, W) scaled prediction.
+        sparse_depth: (B, 1, H, W) SfM z-depth.  sparse_valid: (B, 1, H, W) bool.
+    Returns:
+        scalar ("mean") or (B,) ("none").
+    """
+    return _pixel_nll(depth, std, sparse_depth, sparse_valid, eps, reduction)
+
+
+def dense_simulation_loss(
+    depth: torch.Tensor,
+    std: torch.Tensor,
+    sim_depth: torch.Tensor,
+    sim_valid: torch.Tensor,
+    eps: float = 1e-8,
+    reduction: str = "mean",
+) -> torch.Tensor:
+    """Dense Simulation loss: NLL of the depth rendered from the previous iteration's mesh.
+
+    Zero when no pixel of ``sim_valid`` is set (iteration 0).
+
+    Args:
+        depth, std: (B, 1, H, W) scaled prediction.
+        sim_depth: (B, 1, H, W) simulated z-depth.  sim_valid: (B, 1, H, W) bool.
+    Returns:
+        scalar ("mean") or (B,) ("none").
+    """
+    return _pixel_nll(depth, std, sim_depth, sim_valid, eps, reduction)
+
+
+def depth_consistency_loss(
+    depth_i: torch.Tensor,
+    std_i: torch.Tensor,
+    depth_j: torch.Tensor,
+    std_j: torch.Tensor,
+    K: torch.Tensor,
+    cam_j_from_cam_i: torch.Tensor,
+    mask_i: torch.Tensor,
+    eps: float = 1e-8,
+    reduction: str = "mean",
+) -> torch.Tensor:
+    """Depth Consistency loss: frame j's depth warped into i vs frame i's depth.
+
+    ``geometry.warp_depth`` expresses j's surface in i at i's pixels and carries
+    std_j along linearly; the NLL uses μ = depth_i, x = warped depth_j and
+    σ² = std_i² + std_j,warped², over the warp's valid overlap ∧ mask_i.
+    Non-finite depth values are set to 0 (= invalid to the warp) first.
+
+    Args:
+        depth_i, std_i, depth_j, std_j: (B, 1, H, W) scaled predictions.
+        K: (B, 3, 3) pixel-centre intrinsics.  cam_j_from_cam_i: (B, 4, 4).
+        mask_i: (B, 1, H, W) bool.
+    Returns:
+        scalar ("mean") or (B,) ("none").
+    """
+    shape = check_shape(depth_i, "depth_i", (None, 1, None, None))
+    for x, name in ((std_i, "std_i"), (depth_j, "depth_j"), (std_j, "std_j"), (mask_i, "mask_i")):
+        _check_map(x, name, shape)
+    m_i = mask_i.bool() & torch.isfinite(depth_i) & torch.isfinite(std_i)
+    d_i = _safe(depth_i, m_i, 0.0)
+    ok_j = torch.isfinite(depth_j) & torch.isfinite(std_j)
+    d_j = _safe(depth_j, ok_j, 0.0)
+    s_j = _safe(std_j, ok_j, 0.0)
+    warped, valid, std_w = warp_depth(d_j, d_i, K, cam_j_from_cam_i, std_j=s_j)
+    valid = valid & m_i
+    var = _safe(std_i, valid, 1.0) ** 2 + _safe(std_w, valid, 0.0) ** 2
+    nll = gaussian_nll(_safe(warped, valid, 1.0), _safe(d_i, valid, 1.0), var, eps)
+    return _reduce(nll, valid, reduction)
+
+
+def flow_depth_derivative(
+    depth_i: torch.Tensor, K: torch.Tensor, cam_j_from_cam_i: torch.Tensor, z_j: torch.Tensor
+) -> torch.Tensor:
+    """∂flow/∂depth_i per pixel, closed form.
+
+    With the ray r = K⁻¹(u, v, 1)ᵀ, a = R r and X_j = d·a + t, the normalised
+    coordinate x = X_j,x / X_j,z has ∂x/∂d = (a_x t_z − t_x a_z) / z_j² (same for y);
+    then ∂u/∂d = f_x ∂x/∂d + s ∂y/∂d and ∂v/∂d = f_y ∂y/∂d.
+
+    Args:
+        depth_i: (B, 1, H, W) (only its shape is used).  K: (B, 3, 3).  cam_j_from_cam_i: (B, 4, 4).
+        z_j: (B, 1, H, W) depth of i's points in j (from ``flow_from_depth``), must be nonzero.
+    Returns:
+        (B, 2, H, W) pixels per depth unit.
+    """
+    B, _, H, W = depth_i.shape
+    rays = unproject(torch.ones_like(depth_i), K)  # (B, 3, H, W)
+    R, t = cam_j_from_cam_i[:, :3, :3], cam_j_from_cam_i[:, :3, 3]
+    a = torch.einsum("bij,bjhw->bihw", R, rays)
+    tx, ty, tz = (t[:, k].view(B, 1, 1, 1) for k in range(3))
+    z2 = z_j**2
+    dx = (a[:, 0:1] * tz - tx * a[:, 2:3]) / z2
+    dy = (a[:, 1:2] * tz - ty * a[:, 2:3]) / z2
+    fx, s, fy = (K[:, r, c].view(B, 1, 1, 1) for r, c in ((0, 0), (0, 1), (1, 1)))
+    return torch.cat([fx * dx + s * dy, fy * dy], 1)
+
+
+def sparse_flow_loss(
+    depth_i: torch.Tensor,
+    std_i: torch.Tensor,
+    K: torch.Tensor,
+    cam_j_from_cam_i: torch.Tensor,
+    sparse_flow_ij: torch.Tensor,
+    sparse_flow_valid_ij: torch.Tensor,
+    eps: float = 1e-8,
+    reduction: str = "mean",
+    flow_std_floor: float = 1e-3,
+    min_depth: float = 1e-6,
+) -> torch.Tensor:
+    """Sparse Flow loss: flow implied by the predicted depth and the relative pose vs SfM flow.
+
+    Flows are normalised by the image size (u by W, v by H).  The flow's std
+    comes from the depth std by first-order propagation, σ_u = |∂u/∂d|·σ_d / W
+    (closed form, :func:`flow_depth_derivative`), and its variance gets the
+    floor ``flow_std_floor²``.  Per point the NLL sums the u and v components
+    (a 2-D Gaussian with diagonal covariance).  Points that land behind camera j
+    are ignored.
+
+    Args:
+        depth_i, std_i: (B, 1, H, W) scaled prediction of frame i.
+        K: (B, 3, 3).  cam_j_from_cam_i: (B, 4, 4).
+        sparse_flow_ij: (B, 2, H, W) pixel displacement i -> j at the points' pixels in i.
+        sparse_flow_valid_ij: (B, 1, H, W) bool.
+    Returns:
+        scalar ("mean") or (B,) ("none").
+    """
+    shape = check_shape(depth_i, "depth_i", (None, 1, None, None))
+    _check_map(std_i, "std_i", shape)
+    _check_map(sparse_flow_ij, "sparse_flow_ij", shape, channels=2)
+    _check_map(sparse_flow_valid_ij, "sparse_flow_valid_ij", shape)
+    B, _, H, W = shape
+    valid = (
+        sparse_flow_valid_ij.bool()
+        & torch.isfinite(sparse_flow_ij).all(1, keepdim=True)
+        & torch.isfinite(depth_i)
+        & torch.isfinite(std_i)
+        & (depth_i > min_depth)
+    )
+    d = _safe(depth_i, valid, 1.0)
+    flow, z_j = flow_from_depth(d, K, cam_j_from_cam_i)
+    valid = valid & (z_j > min_depth)
+    z_j = _safe(z_j, valid, 1.0)
+    size = torch.tensor([W, H], dtype=d.dtype, device=d.device).view(1, 2, 1, 1)
+    jac = flow_depth_derivative(d, K, cam_j_from_cam_i, z_j) / size
+    var = (jac * _safe(std_i, valid, 1.0)) ** 2 + flow_std_floor**2
+    obs = _safe(sparse_flow_ij, valid.expand(-1, 2, -1, -1), 0.0) / size
+    nll = gaussian_nll(obs, flow / size, var, eps).sum(1, keepdim=True)
+    nll = _safe(nll, valid, 0.0)  # pixels that fail only the z_j test may be non-finite
+    return _reduce(nll, valid, reduction)

@@ -1,0 +1,290 @@
+"""DepthModule: the LightningModule that trains the depth-and-std network on frame pairs.
+
+One step, for a batch of pairs (i, j) of one sequence (keys documented in
+:data:`BATCH_KEYS`):
+
+1. both frames go through the network in one batch of 2B images;
+2. the Depth Scaling Layer brings each frame's depth and std to its SfM scale;
+3. the four NLL losses of :mod:`endorecon.losses`, in both directions
+   (i->j and j->i, as one batch of 2B):
+   sparse depth, depth consistency, sparse flow, dense simulation;
+4. total = Σ weight_k · loss_k.  During the first ``warmup_epochs`` only the
+   sparse losses act (depth consistency and dense simulation are logged but
+   weighted 0).  The validation total (``val/loss``, for checkpoint selection)
+   always uses every weight so that epochs compare.
+
+Robustness on CPU (NLL losses explode from a random init): a std floor in the
+network, non-finite totals skip the batch (``training_step`` returns None),
+non-finite gradients skip the optimizer step (grads dropped), both counted in
+``train/skipped_batches``; gradient clipping is the trainer's
+``gradient_clip_val``.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Mapping
+from typing import Any
+
+import hydra.utils
+import lightning as L
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from endorecon.geometry import invert_pose, warp_depth
+from endorecon.losses import dense_simulation_loss, depth_consistency_loss, sparse_depth_loss, sparse_flow_loss
+from endorecon.module.visuals import pair_panel
+from endorecon.networks.scaling import scale_depth
+
+BATCH_KEYS = (
+    "image_i", "image_j",  # (B,3,H,W) float [0,1]
+    "mask_i", "mask_j",  # (B,1,H,W) bool
+    "K",  # (B,3,3) pixel-centre
+    "cam_j_from_cam_i",  # (B,4,4) SfM units
+    "sparse_depth_i", "sparse_depth_j", "sparse_valid_i", "sparse_valid_j",  # (B,1,H,W), 0 = none / bool
+    "sparse_flow_ij", "sparse_flow_valid_ij", "sparse_flow_ji", "sparse_flow_valid_ji",  # (B,2,H,W) / (B,1,H,W)
+    "sim_depth_i", "sim_depth_j", "sim_valid_i", "sim_valid_j",  # (B,1,H,W) / bool
+    "index_i", "index_j", "has_sim",  # (B,)
+)  # fmt: skip
+
+LOSS_NAMES = ("sparse_depth", "depth_consistency", "sparse_flow", "dense_simulation")
+WARMUP_LOSSES = ("sparse_depth", "sparse_flow")
+
+DEFAULT_LOSS = {
+    "sparse_depth": 1.0,
+    "depth_consistency": 0.5,
+    "sparse_flow": 100.0,
+    "dense_simulation": 0.1,
+    "eps": 1e-8,
+    "warmup_epochs": 1,
+    "flow_std_floor": 1e-3,
+}
+
+
+def _plain(cfg: Any) -> dict:
+    if isinstance(cfg, DictConfig):
+        return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
+    return dict(cfg or {})
+
+
+def _cat(batch: Mapping, a: str, b: str) -> torch.Tensor:
+    return torch.cat([batch[a], batch[b]], 0)
+
+
+class DepthModule(L.LightningModule):
+    """Depth + std network trained with the four NLL losses.
+
+    Args:
+        model: ``cfg.model``: ``net`` (hydra ``_target_`` of the network, e.g.
+            :class:`endorecon.networks.FCDenseNet`), ``optimizer`` and ``scheduler``
+            (``_target_`` + ``_partial_: true``; OneCycleLR gets ``total_steps`` from the
+            trainer if not given), ``scheduler_interval`` ("step"/"epoch"),
+            ``log_images_every_n_steps`` (0 = never).
+        loss: ``cfg.loss``: weights ``sparse_depth``, ``depth_consistency``, ``sparse_flow``,
+            ``dense_simulation``; ``eps``; ``warmup_epochs``; ``flow_std_floor``.
+    """
+
+    def __init__(self, model: Mapping, loss: Mapping | None = None):
+        super().__init__()
+        model, loss = _plain(model), {**DEFAULT_LOSS, **_plain(loss)}
+        if "net" not in model:
+            raise ValueError("cfg.model needs a 'net' entry with a _target_ (e.g. endorecon.networks.FCDenseNet)")
+        unknown = set(loss) - set(DEFAULT_LOSS)
+        if unknown:
+            raise ValueError(f"unknown cfg.loss keys {sorted(unknown)}; known: {sorted(DEFAULT_LOSS)}")
+        self.save_hyperparameters({"model": model, "loss": loss})
+        self.net = hydra.utils.instantiate(model["net"])
+        self.weights = {k: float(loss[k]) for k in LOSS_NAMES}
+        self.eps = float(loss["eps"])
+        self.warmup_epochs = int(loss["warmup_epochs"])
+        self.flow_std_floor = float(loss["flow_std_floor"])
+        self.log_images_every_n_steps = int(model.get("log_images_every_n_steps", 0))
+        self.skipped_batches = 0
+
+    # ------------------------------------------------------------------ inference
+    def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Unscaled network output (depth, std), each (B,1,H,W)."""
+        return self.net(image, mask)
+
+    @torch.no_grad()
+    def predict(
+        self,
+        images: torch.Tensor,
+        mask: torch.Tensor,
+        sparse_depth: torch.Tensor | None = None,
+        sparse_valid: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Depth and std for inference/fusion, in eval mode (the previous mode is restored).
+
+        Args:
+            images: (B,3,H,W) in [0,1].  mask: (B,1,H,W) bool.
+            sparse_depth, sparse_valid: optional (B,1,H,W); if given, the output is
+                scaled to the SfM scale by the Depth Scaling Layer.
+        Returns:
+            depth, std: (B,1,H,W).
+        """
+        was_training = self.training
+        self.eval()
+        try:
+            depth, std = self.net(images, mask)
+            if sparse_depth is not None:
+                if sparse_valid is None:
+                    sparse_valid = sparse_depth > 0
+                depth, std, _, _ = scale_depth(depth, std, sparse_depth, sparse_valid, self.eps)
+        finally:
+            self.train(was_training)
+        return depth, std
+
+    def predict_step(self, batch: Mapping, batch_idx: int = 0) -> dict:
+        """Batch with ``image``, ``mask`` and optional ``sparse_depth``/``sparse_valid`` -> dict(depth, std)."""
+        depth, std = self.predict(batch["image"], batch["mask"], batch.get("sparse_depth"), batch.get("sparse_valid"))
+        return {"depth": depth, "std": std}
+
+    # ------------------------------------------------------------------ losses
+    def compute_losses(self, batch: Mapping) -> dict[str, torch.Tensor]:
+        """Raw (unweighted) losses of a pair batch, both directions, plus diagnostics.
+
+        Returns a dict with the four loss names (scalars), ``dense_simulation_active``
+        (0/1), ``frames_without_sparse`` (count), and the scaled predictions
+        ``depth``, ``std`` (2B,1,H,W) as [frames i; frames j].
+        """
+        missing = [k for k in BATCH_KEYS if k not in batch and k not in ("index_i", "index_j")]
+        if missing:
+            raise KeyError(f"batch lacks {missing}")
+        image, mask = _cat(batch, "image_i", "image_j"), _cat(batch, "mask_i", "mask_j").bool()
+        depth, std = self.net(image, mask)
+        sparse_depth = _cat(batch, "sparse_depth_i", "sparse_depth_j")
+        sparse_valid = _cat(batch, "sparse_valid_i", "sparse_valid_j").bool()
+        depth, std, _, has_sparse = scale_depth(depth, std, sparse_depth, sparse_valid, self.eps)
+
+        T_ji = batch["cam_j_from_cam_i"].to(depth.dtype)
+        T = torch.cat([T_ji, invert_pose(T_ji)], 0)  # i->j for frames i, j->i for frames j
+        K = torch.cat([batch["K"], batch["K"]], 0).to(depth.dtype)
+        B = batch["image_i"].shape[0]
+        d_i, d_j = depth[:B], depth[B:]
+        s_i, s_j = std[:B], std[B:]
+        has_sim = batch["has_sim"].bool().view(-1, 1, 1, 1).repeat(2, 1, 1, 1)
+        sim_valid = _cat(batch, "sim_valid_i", "sim_valid_j").bool() & has_sim
+        out = {
+            "sparse_depth": sparse_depth_loss(depth, std, sparse_depth, sparse_valid, self.eps),
+            "depth_consistency": depth_consistency_loss(
+                depth, std, torch.cat([d_j, d_i]), torch.cat([s_j, s_i]), K, T, mask, self.eps
+            ),
+            "sparse_flow": sparse_flow_loss(
+                depth, std, K, T,
+                _cat(batch, "sparse_flow_ij", "sparse_flow_ji"),
+                _cat(batch, "sparse_flow_valid_ij", "sparse_flow_valid_ji").bool(),
+                self.eps, flow_std_floor=self.flow_std_floor,
+            ),  # fmt: skip
+            "dense_simulation": dense_simulation_loss(
+                depth, std, _cat(batch, "sim_depth_i", "sim_depth_j"), sim_valid, self.eps
+            ),
+            "dense_simulation_active": sim_valid.any().to(depth.dtype),
+            "frames_without_sparse": (~has_sparse).sum().to(depth.dtype),
+            "depth": depth,
+            "std": std,
+        }
+        return out
+
+    def in_warmup(self) -> bool:
+        return self.current_epoch < self.warmup_epochs
+
+    def total_loss(self, losses: Mapping[str, torch.Tensor], warmup: bool) -> tuple[torch.Tensor, dict]:
+        """Σ weight·loss (warm-up: only the sparse losses); returns (total, weighted shares)."""
+        shares = {}
+        for k in LOSS_NAMES:
+            if warmup and k not in WARMUP_LOSSES:
+                continue
+            if k == "dense_simulation" and not losses["dense_simulation_active"]:
+                continue  # inactive: exactly zero, not 0·NaN
+            shares[k] = self.weights[k] * losses[k]
+        total = functools.reduce(torch.add, shares.values())
+        return total, shares
+
+    # ------------------------------------------------------------------ lightning hooks
+    def training_step(self, batch: Mapping, batch_idx: int):
+        losses = self.compute_losses(batch)
+        warmup = self.in_warmup()
+        total, shares = self.total_loss(losses, warmup)
+        B = batch["image_i"].shape[0]
+        log = functools.partial(self.log, on_step=True, on_epoch=True, batch_size=B)
+        if not torch.isfinite(total):
+            self.skipped_batches += 1
+            log("train/skipped_batches", float(self.skipped_batches))
+            return None
+        for k in LOSS_NAMES:
+            log(f"train/{k}", losses[k].detach())
+            log(f"train/{k}_weighted", shares.get(k, torch.zeros_like(total)).detach())
+        log("train/total", total.detach(), prog_bar=True)
+        log("train/dense_simulation_active", losses["dense_simulation_active"])
+        log("train/frames_without_sparse", losses["frames_without_sparse"])
+        log("train/warmup", float(warmup))
+        log("train/skipped_batches", float(self.skipped_batches))
+        if self.trainer is not None and self.trainer.optimizers:
+            log("train/lr", float(self.trainer.optimizers[0].param_groups[0]["lr"]), on_epoch=False)
+        n = self.log_images_every_n_steps
+        if n > 0 and self.global_step % n == 0:
+            self._log_images(batch, losses, "train")
+        return total
+
+    def validation_step(self, batch: Mapping, batch_idx: int):
+        losses = self.compute_losses(batch)
+        total, shares = self.total_loss(losses, warmup=False)
+        B = batch["image_i"].shape[0]
+        log = functools.partial(self.log, on_step=False, on_epoch=True, batch_size=B)
+        for k in LOSS_NAMES:
+            log(f"val/{k}", losses[k])
+            log(f"val/{k}_weighted", shares.get(k, torch.zeros_like(total)))
+        log("val/loss", total, prog_bar=True)
+        if batch_idx == 0 and self.log_images_every_n_steps > 0:
+            self._log_images(batch, losses, "val")
+        return total
+
+    def on_before_optimizer_step(self, optimizer) -> None:
+        grads = [p.grad for p in self.parameters() if p.grad is not None]
+        if grads and not torch.isfinite(torch.stack([g.abs().sum() for g in grads])).all():
+            self.skipped_batches += 1
+            for p in self.parameters():
+                p.grad = None  # optimizers skip params without grad: no step on this batch
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["skipped_batches"] = self.skipped_batches
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        self.skipped_batches = int(checkpoint.get("skipped_batches", 0))
+
+    def configure_optimizers(self):
+        model = self.hparams["model"]
+        if "optimizer" not in model:
+            return torch.optim.AdamW(self.parameters(), lr=1e-4)
+        optimizer = hydra.utils.instantiate(model["optimizer"])(self.parameters())
+        if not model.get("scheduler"):
+            return optimizer
+        make = hydra.utils.instantiate(model["scheduler"])
+        kwargs = {}
+        func = getattr(make, "func", None)
+        if func is torch.optim.lr_scheduler.OneCycleLR and not ({"total_steps", "epochs"} & set(make.keywords)):
+            steps = self.trainer.estimated_stepping_batches
+            if not (0 < steps < float("inf")):
+                raise ValueError("OneCycleLR needs a finite schedule: set trainer max_epochs/max_steps or total_steps")
+            kwargs["total_steps"] = int(steps)
+        scheduler = make(optimizer, **kwargs)
+        interval = model.get("scheduler_interval", "step")
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": interval}}
+
+    # ------------------------------------------------------------------ images
+    @torch.no_grad()
+    def _log_images(self, batch: Mapping, losses: Mapping, stage: str) -> None:
+        from lightning.pytorch.loggers import TensorBoardLogger
+
+        if not isinstance(self.logger, TensorBoardLogger):
+            return
+        B = batch["image_i"].shape[0]
+        d_i, d_j = losses["depth"][:1].float(), losses["depth"][B : B + 1].float()
+        warped, valid, _ = warp_depth(d_j, d_i, batch["K"][:1].float(), batch["cam_j_from_cam_i"][:1].float())
+        valid = valid & batch["mask_i"][:1].bool()
+        rel = torch.where(valid, (warped - d_i).abs() / d_i, torch.zeros_like(d_i))
+        panel = pair_panel(
+            batch["image_i"][0], batch["mask_i"][0], d_i[0], losses["std"][0], batch["sparse_valid_i"][0], rel[0], valid[0]
+        )
+        self.logger.experiment.add_image(f"{stage}/input_depth_std_sparse_error", panel, self.global_step)

@@ -1,0 +1,258 @@
+"""Pipeline steps shared by the train and reconstruct tasks.
+
+Each step is resumable: it writes its outputs atomically and skips work whose
+complete outputs exist.
+
+* :func:`load_sequences` — the sequences of a dataset (the generated phantom by default).
+* :func:`run_sfm` — the SfM stage for each sequence, cached under ``paths.cache_dir``.
+* :func:`infer_depth` — network depth and std for every frame of a sequence.
+* :func:`refine_sequence` — fusion → simulated depth → failure detection → PGO →
+  fusion again with refined poses and without flagged frames → simulated depth
+  for the next iteration.  It writes one sequence's artifacts.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from endorecon.data.sequence import Sequence, read_poses_txt, write_poses_txt
+from endorecon.utils.errors import InputError
+from endorecon.utils.io import atomic_save_npz, atomic_write_text
+
+log = logging.getLogger(__name__)
+
+
+# ------------------------------------------------------------------ datasets
+@dataclass
+class DatasetInfo:
+    root: Path
+    sequences: list[Sequence]
+    patients_with_ct: list[int]
+
+
+def load_sequences(cfg: DictConfig) -> DatasetInfo:
+    """The dataset named by ``cfg.data`` (``data=phantom`` generates it on first use)."""
+    name = cfg.data.name
+    if name == "phantom":
+        from endorecon.data.dataset import load_dataset, patients_with_ct
+        from endorecon.phantom import ensure_dataset
+
+        root = ensure_dataset(cfg.data.phantom, Path(cfg.data.root))
+        return DatasetInfo(root, load_dataset(root), patients_with_ct(root))
+    raise InputError(f"unknown data.name {name!r}", fix="use data=phantom")
+
+
+def check_fold(fold: int, patients_with_ct: list[int]) -> None:
+    if fold not in patients_with_ct:
+        raise InputError(
+            f"unknown fold {fold}: a fold holds out one patient with CT, one of {patients_with_ct}",
+            fix=f"pass fold=<k> with k in {patients_with_ct}",
+        )
+
+
+def _slug(name: str) -> str:
+    return name.replace("/", "__")
+
+
+def config_hash(*parts) -> str:
+    h = hashlib.sha1()
+    for p in parts:
+        if isinstance(p, DictConfig):
+            p = OmegaConf.to_container(p, resolve=True)
+        h.update(json.dumps(p, sort_keys=True, default=str).encode())
+    return h.hexdigest()[:10]
+
+
+def run_sfm(cfg: DictConfig, sequences: list[Sequence], data_root: Path | None = None) -> list[Sequence]:
+    """SfM for every sequence, cached in ``paths.cache_dir/sfm/<hash>/<sequence>`` (resumable)."""
+    from endorecon.sfm.stage import load_result
+    from endorecon.sfm.stage import run as sfm_run
+
+    stamp = ""
+    if data_root is not None and (Path(data_root) / "dataset.json").is_file():
+        stamp = (Path(data_root) / "dataset.json").read_text()
+    key = config_hash(cfg.sfm, stamp, str(data_root))
+    out = []
+    for seq in sequences:
+        out_dir = Path(cfg.paths.cache_dir) / "sfm" / key / _slug(seq.name)
+        sfm_run(cfg.sfm, seq, out_dir)
+        res = load_result(out_dir)
+        res.patient = seq.patient
+        res.name = seq.name
+        out.append(res)
+    return out
+
+
+# ----------------------------------------------------------------- inference
+@torch.no_grad()
+def infer_depth(module, seq: Sequence, cache, batch_size: int = 8, frames: list[int] | None = None):
+    """Network depth and std of every frame (scaled to SfM units by the Depth Scaling Layer).
+
+    Args:
+        module: a :class:`endorecon.module.DepthModule`.
+        seq: the sequence at the network's resolution.
+        cache: its :class:`endorecon.data.sparse.SparseCache` (for the per-frame scale).
+    Returns:
+        depth (N,1,H,W), std (N,1,H,W) float32 tensors, colours (N,H,W,3) float32 in [0, 1].
+    """
+    from rich.progress import Progress
+
+    module.eval()
+    device = next(module.parameters()).device
+    n = len(seq)
+    frames = list(range(n)) if frames is None else frames
+    H, W = seq.height, seq.width
+    depth = torch.zeros(n, 1, H, W)
+    std = torch.zeros(n, 1, H, W)
+    colors = np.zeros((n, H, W, 3), np.float32)
+    mask = torch.from_numpy(seq.mask)[None, None]
+    with Progress(transient=True) as bar:
+        task = bar.add_task(f"depth {seq.name}", total=len(frames))
+        for s in range(0, len(frames), batch_size):
+            idx = frames[s : s + batch_size]
+            imgs = np.stack([seq.load_frame(i) for i in idx]).astype(np.float32) / 255.0
+            colors[idx] = imgs
+            img_t = torch.from_numpy(imgs).permute(0, 3, 1, 2).to(device)
+            sd, sv = zip(*(cache.depth_map(i) for i in idx))
+            sd = torch.from_numpy(np.stack(sd)).to(device)
+            sv = torch.from_numpy(np.stack(sv)).to(device)
+            d, s_ = module.predict(img_t, mask.expand(len(idx), -1, -1, -1).to(device), sd, sv)
+            depth[idx] = d.float().cpu()
+            std[idx] = s_.float().cpu()
+            bar.advance(task, len(idx))
+    return depth, std, colors
+
+
+# ------------------------------------------------------------------- fusion
+def fuse_sequence(cfg_fusion, seq: Sequence, depth, std, colors, cam_from_world, use: np.ndarray):
+    """Fuse the frames ``use`` (N,) bool into a volume; returns the volume (call ``extract_mesh``/``save_mesh``)."""
+    from endorecon.fusion.run import build_fusion
+
+    idx = np.flatnonzero(use & np.isfinite(cam_from_world).all(axis=(1, 2)))
+    if len(idx) == 0:
+        raise InputError(f"{seq.name}: no registered, unflagged frame left to fuse",
+                         fix="check SfM (registered frames) and failure.thresholds")
+    d = depth[idx, 0]
+    m = torch.from_numpy(seq.mask)[None].expand(len(idx), -1, -1) & (d > 0) & torch.isfinite(d)
+    med = float(d[m].median())
+    volume = build_fusion(cfg_fusion, med)
+    for i in idx:
+        volume.integrate(depth[i, 0].numpy(), std[i, 0].numpy(), colors[i], seq.intrinsics, cam_from_world[i], seq.mask)
+    return volume
+
+
+def render_simulated(mesh, seq: Sequence, cam_from_world: np.ndarray):
+    """Simulated depth: the fused mesh rendered at every frame's pose. -> depth (N,H,W) f32, valid (N,H,W) bool."""
+    from endorecon.rendering.raycast import render_depth
+
+    return render_depth(mesh, seq.intrinsics, cam_from_world, seq.height, seq.width, mask=seq.mask)
+
+
+def save_simulated(path: Path, depth: np.ndarray, valid: np.ndarray) -> Path:
+    return atomic_save_npz(path, depth=depth.astype(np.float32), valid=valid)
+
+
+def load_simulated(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        z = np.load(path)
+        return z["depth"], z["valid"]
+    except (OSError, KeyError, ValueError) as e:
+        raise InputError(f"corrupt simulated depth ({e})", path, "delete the iteration dir and rerun it") from e
+
+
+def _stage_cfg(cfg_group: DictConfig) -> dict:
+    """A stage's config as a plain dict without the pipeline's own ``enabled`` switch."""
+    d = OmegaConf.to_container(cfg_group, resolve=True)
+    d.pop("enabled", None)
+    return d
+
+
+def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, excluded: np.ndarray | None,
+                    out_dir: Path) -> dict:
+    """One sequence's end-of-iteration work; writes ``out_dir/{mesh.ply, poses.txt, simulated_depth.npz,
+    failures.csv, summary.json}`` and returns the summary.  Skips if ``summary.json`` exists."""
+    from endorecon.failure import detect_failures
+    from endorecon.pgo import optimize_poses
+
+    out_dir = Path(out_dir)
+    done = out_dir / "summary.json"
+    if done.is_file():
+        return json.loads(done.read_text())
+    out_dir.mkdir(parents=True, exist_ok=True)
+    n = len(seq)
+    times = {}
+    poses = seq.cam_from_world.copy()
+    registered = np.isfinite(poses).all(axis=(1, 2))
+    use = registered & (np.zeros(n, bool) if excluded is None else ~excluded)
+
+    # 1. fuse with the current poses, render it back: the simulated depth that failure detection judges.
+    t0 = time.perf_counter()
+    volume = fuse_sequence(cfg.fusion, seq, depth, std, colors, poses, use)
+    mesh0 = volume.extract_mesh()
+    sim, sim_valid = render_simulated(mesh0, seq, poses)
+    times["fusion_s"] = time.perf_counter() - t0
+
+    K = torch.from_numpy(seq.intrinsics).float()
+    mask = torch.from_numpy(seq.mask)[None]
+
+    def sparse_flow_fn(i, j):
+        f, v = cache.flow_map(i, j)
+        return torch.from_numpy(f), torch.from_numpy(v)
+
+    # 2. failure detection.
+    t0 = time.perf_counter()
+    flagged = np.zeros(n, bool)
+    report = detect_failures(depth, std, torch.from_numpy(sim)[:, None], torch.from_numpy(sim_valid)[:, None], K,
+                             torch.from_numpy(poses), mask, sparse_flow_fn, _stage_cfg(cfg.failure))
+    report.to_csv(out_dir / "failures.csv")
+    if cfg.failure.enabled:
+        flagged[list(report.flagged_frames)] = True
+    times["failure_s"] = time.perf_counter() - t0
+
+    # 3. dense pose graph optimisation.
+    t0 = time.perf_counter()
+    pgo_summary = {}
+    if cfg.pgo.enabled:
+        res = optimize_poses(depth, std, K, torch.from_numpy(poses), mask, sparse_flow_fn, _stage_cfg(cfg.pgo))
+        new_poses = res.cam_from_world.detach().double().numpy()
+        new_poses[~registered] = np.nan
+        pgo_summary = dict(loss_before=float(res.history[0]) if len(res.history) else None,
+                           loss_after=float(res.history[-1]) if len(res.history) else None)
+        poses = new_poses
+    times["pgo_s"] = time.perf_counter() - t0
+    write_poses_txt(out_dir / "poses.txt", [p.name for p in seq.frame_paths], poses)
+
+    # 4. fuse again with refined poses and without flagged frames; render for the next iteration.
+    t0 = time.perf_counter()
+    keep = use & ~flagged
+    if not keep.any():
+        log.warning("%s: every frame flagged; fusing all registered frames", seq.name)
+        keep = use
+    volume = fuse_sequence(cfg.fusion, seq, depth, std, colors, poses, keep)
+    volume.save_mesh(out_dir / "mesh.ply")
+    sim, sim_valid = render_simulated(volume.extract_mesh(), seq, poses)
+    save_simulated(out_dir / "simulated_depth.npz", sim, sim_valid)
+    times["fusion2_s"] = time.perf_counter() - t0
+
+    summary = dict(
+        sequence=seq.name,
+        frames=n,
+        registered=int(registered.sum()),
+        fused=int(keep.sum()),
+        flagged=[int(i) for i in np.flatnonzero(flagged)],
+        n_flagged=int(flagged.sum()),
+        checked=int(len(report.checked_frames)) if hasattr(report, "checked_frames") else None,
+        pgo=pgo_summary,
+        times=times,
+    )
+    atomic_write_text(done, json.dumps(summary, indent=2) + "\n")
+    return summary

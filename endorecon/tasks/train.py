@@ -1,0 +1,145 @@
+"""The train task: bootstrapped self-supervised training for one leave-one-out fold.
+
+``python train.py fold=k iteration=i`` makes ``outputs/train/fold=k/iteration=0..i``.
+Each iteration dir is complete when its ``metrics.json`` exists; complete
+iterations are skipped, missing earlier ones are run first (or, with
+``bootstrap.run_missing=false``, the task stops and prints the command).
+
+One iteration: train the DepthModule on all training patients' sequences
+(with the Dense Simulation Loss on the previous iteration's simulated depth,
+poses refined by the previous PGO, flagged frames excluded), then the
+:class:`endorecon.callbacks.BootstrapCallback` fuses, renders, detects
+failures and refines poses for every sequence, the held-out patient's
+included, and evaluates the held-out patient's mesh against its CT.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from endorecon.data.sequence import Sequence, read_poses_txt
+from endorecon.data.transforms import resize_sequence
+from endorecon.tasks import pipeline
+from endorecon.utils.errors import InputError
+from endorecon.utils.io import atomic_write_text
+
+log = logging.getLogger(__name__)
+
+
+def iteration_dir(cfg: DictConfig, it: int) -> Path:
+    return Path(cfg.paths.run_dir) / f"iteration={it}"
+
+
+def is_complete(it_dir: Path) -> bool:
+    return (it_dir / "metrics.json").is_file()
+
+
+def prepare_sequences(cfg: DictConfig, sfm_seqs: list[Sequence], prev_dir: Path | None):
+    """Sequences at training resolution with poses, sparse caches, simulated depth and exclusions of ``prev_dir``."""
+    from endorecon.data.datamodule import PreparedSequence
+    from endorecon.data.sparse import build_sparse_cache
+
+    out = []
+    for seq in sfm_seqs:
+        small = resize_sequence(seq, int(cfg.data.height), int(cfg.data.width))
+        sim = sim_valid = excluded = None
+        if prev_dir is not None:
+            sdir = prev_dir / "sequences" / pipeline._slug(seq.name)
+            names, poses = read_poses_txt(sdir / "poses.txt")
+            if names != [p.name for p in small.frame_paths]:
+                raise InputError("refined poses list other frames than the sequence", sdir / "poses.txt",
+                                 "delete the iteration dirs of this fold and rerun")
+            small = small.replace(cam_from_world=poses)
+            sim, sim_valid = pipeline.load_simulated(sdir / "simulated_depth.npz")
+            summary = json.loads((sdir / "summary.json").read_text())
+            excluded = np.zeros(len(small), bool)
+            excluded[summary["flagged"]] = True
+        cache = build_sparse_cache(small)
+        out.append(PreparedSequence(seq=small, cache=cache, sim_depth=sim, sim_valid=sim_valid, excluded=excluded))
+    return out
+
+
+def run(cfg: DictConfig) -> float | None:
+    """Run (or resume) bootstrapping iterations 0..cfg.iteration of fold cfg.fold; returns the held-out
+    patient's mean residual in mm (for sweeps), when evaluated."""
+    L.seed_everything(int(cfg.seed), workers=True)
+    if int(cfg.iteration) < 0:
+        raise InputError(f"iteration must be >= 0, got {cfg.iteration}", fix="pass iteration=0, 1, 2 ...")
+    info = pipeline.load_sequences(cfg)
+    pipeline.check_fold(int(cfg.fold), info.patients_with_ct)
+    todo = [it for it in range(int(cfg.iteration) + 1) if not is_complete(iteration_dir(cfg, it))]
+    if not todo:
+        log.info("all iterations up to %d of fold %d are complete", cfg.iteration, cfg.fold)
+    if todo and todo[0] < int(cfg.iteration) and not cfg.bootstrap.run_missing:
+        raise InputError(
+            f"iteration {cfg.iteration} needs iteration {todo[0]}, which is missing",
+            iteration_dir(cfg, todo[0]),
+            f"run: python train.py fold={cfg.fold} iteration={todo[0]}  (or bootstrap.run_missing=true)",
+        )
+    sfm_seqs = pipeline.run_sfm(cfg, info.sequences, info.root)
+    metrics = None
+    for it in todo:
+        metrics = run_iteration(cfg, it, sfm_seqs, info)
+    if metrics is None:
+        metrics = json.loads((iteration_dir(cfg, int(cfg.iteration)) / "metrics.json").read_text())
+    ev = metrics.get("evaluation") or {}
+    return ev.get("mean_mm")
+
+
+def run_iteration(cfg: DictConfig, it: int, sfm_seqs: list[Sequence], info: pipeline.DatasetInfo) -> dict:
+    from endorecon.callbacks import BootstrapCallback
+    from endorecon.data.datamodule import EndoDataModule
+    from endorecon.module import DepthModule
+
+    it_dir = iteration_dir(cfg, it)
+    it_dir.mkdir(parents=True, exist_ok=True)
+    (it_dir / ".hydra").mkdir(exist_ok=True)
+    atomic_write_text(it_dir / ".hydra" / "config.yaml", OmegaConf.to_yaml(cfg, resolve=False))
+    log.info("bootstrapping iteration %d of fold %d -> %s", it, cfg.fold, it_dir)
+    prev_dir = iteration_dir(cfg, it - 1) if it > 0 else None
+    prepared = prepare_sequences(cfg, sfm_seqs, prev_dir)
+    datamodule = EndoDataModule(cfg.data, prepared, fold=int(cfg.fold), patients_with_ct=info.patients_with_ct)
+    module = DepthModule(cfg.model, cfg.loss)
+    if prev_dir is not None and cfg.bootstrap.warm_start:
+        load_weights(module, prev_dir / "checkpoints" / "last.ckpt")
+        # The warm-up protects a random init from the dense NLLs; a warm-started network needs none.
+        module.warmup_epochs = 0
+
+    callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c and "_target_" in c]
+    for c in callbacks:
+        if isinstance(c, L.pytorch.callbacks.ModelCheckpoint):
+            c.dirpath = str(it_dir / "checkpoints")
+    boot = BootstrapCallback(cfg, prepared, it_dir, info)
+    callbacks.append(boot)
+    logger = False
+    if cfg.get("logger") and "_target_" in cfg.logger:
+        logger = instantiate(cfg.logger, save_dir=str(it_dir))
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger, default_root_dir=str(it_dir))
+    ckpt = None
+    last = it_dir / "checkpoints" / "last.ckpt"
+    if cfg.ckpt_path == "last" and last.is_file():
+        ckpt = str(last)
+    elif cfg.ckpt_path not in (None, "last"):
+        ckpt = str(cfg.ckpt_path)
+    trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
+    if boot.metrics is None:  # training was interrupted before on_train_end
+        raise InputError(f"iteration {it} did not finish", it_dir, "resume with ckpt_path=last")
+    return boot.metrics
+
+
+def load_weights(module, ckpt: Path) -> None:
+    """Network weights of a previous iteration (optimiser and schedule start afresh)."""
+    import torch
+
+    if not ckpt.is_file():
+        raise InputError("previous iteration's checkpoint is missing", ckpt,
+                         "delete that iteration dir so that it is run again")
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    module.load_state_dict(state)

@@ -1,0 +1,23 @@
+"""Reconstruct a new video with a trained model: ``python reconstruct.py input=<video or frames> ckpt=<ckpt>``."""
+
+import os
+
+# Idle OpenMP threads of torch and open3d spin and starve each other (~10x slower fusion on 2 cores).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import hydra  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+import endorecon.utils.resolvers  # noqa: E402,F401  (config resolvers)
+
+
+@hydra.main(config_path="conf", config_name="reconstruct", version_base="1.3")
+def main(cfg: DictConfig):
+    from endorecon.tasks.reconstruct import run
+    from endorecon.utils.cli import report_errors
+
+    return report_errors(run, cfg)
+
+
+if __name__ == "__main__":
+    main()

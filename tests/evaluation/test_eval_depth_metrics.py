@@ -1,0 +1,102 @@
+import numpy as np
+import pytest
+import torch
+
+from endorecon.evaluation import depth_metrics, std_error_spearman
+
+
+def _gt(n=3, h=8, w=10, seed=0):
+    return torch.from_numpy(np.random.default_rng(seed).uniform(5.0, 40.0, size=(n, h, w)))
+
+
+def test_median_scaling_removes_a_global_factor():
+    gt = _gt()
+    m = depth_metrics(2.0 * gt, gt)
+    for k in ("abs_rel", "sq_rel", "rmse", "rmse_log"):
+        assert m[k] < 1e-12, k
+    assert m["a1"] == m["a2"] == m["a3"] == 1.0
+    assert m["scale_median"] == pytest.approx(0.5)
+    assert m["n_frames"] == 3 and m["n_pixels"] == 3 * 8 * 10
+
+
+def test_median_scaling_is_per_frame():
+    gt = _gt()
+    pred = gt * torch.tensor([0.1, 3.0, 7.0], dtype=torch.float64)[:, None, None]
+    assert depth_metrics(pred, gt)["abs_rel"] < 1e-12
+    assert depth_metrics(pred, gt, median_scaling=False)["abs_rel"] > 0.5
+
+
+def test_relative_error_without_scaling():
+    gt = _gt()
+    e = 0.1
+    m = depth_metrics(gt * (1 + e), gt, median_scaling=False)
+    assert m["abs_rel"] == pytest.approx(e)
+    assert m["sq_rel"] == pytest.approx(e**2 * gt.mean(dim=(1, 2)).mean().item())
+    assert m["rmse"] == pytest.approx(e * gt.pow(2).mean(dim=(1, 2)).sqrt().mean().item())
+    assert m["rmse_log"] == pytest.approx(np.log(1 + e))
+    assert m["a1"] == 1.0
+    m = depth_metrics(gt * 1.3, gt, median_scaling=False)  # 1.25 < 1.3 < 1.25²
+    assert (m["a1"], m["a2"], m["a3"]) == (0.0, 1.0, 1.0)
+
+
+def test_constant_offset():
+    gt = _gt()
+    m = depth_metrics(gt + 1.0, gt, median_scaling=False)
+    assert m["abs_rel"] == pytest.approx((1.0 / gt).mean(dim=(1, 2)).mean().item())
+    assert m["rmse"] == pytest.approx(1.0)
+
+
+def test_valid_mask_cap_and_shapes():
+    gt = _gt()
+    pred = gt.clone()
+    valid = torch.ones_like(gt, dtype=torch.bool)
+    pred[:, :2] = 1000.0  # garbage rows, excluded by the mask
+    valid[:, :2] = False
+    m = depth_metrics(pred, gt, valid, median_scaling=False)
+    assert m["abs_rel"] < 1e-12 and m["n_pixels"] == 3 * 6 * 10
+    # gt = 0 is "no ground truth"; pixels beyond the cap are ignored.
+    gt2 = gt.clone()
+    gt2[:, 2] = 0.0
+    m = depth_metrics(pred, gt2, valid, median_scaling=False)
+    assert m["n_pixels"] == 3 * 5 * 10
+    m = depth_metrics(gt * 1.1, gt, median_scaling=False, cap=20.0)
+    assert m["n_pixels"] == int((gt <= 20).sum())
+    # predictions are clamped to the cap: gt in (18.2, 20] is predicted at 20, not 1.1·gt
+    expected = np.mean([((g[g <= 20] * 1.1).clamp(max=20) / g[g <= 20] - 1).mean().item() for g in gt])
+    assert m["abs_rel"] == pytest.approx(expected) and expected < 0.099
+    # (B, 1, H, W) torch and (N, H, W) numpy give the same numbers
+    m1 = depth_metrics(1.7 * gt[:, None] + 0.3, gt[:, None], valid[:, None])
+    m2 = depth_metrics((1.7 * gt + 0.3).numpy(), gt.numpy(), valid.numpy())
+    assert m1 == m2
+
+
+def test_frames_without_valid_pixels_are_skipped():
+    gt = _gt()
+    valid = torch.ones_like(gt, dtype=torch.bool)
+    valid[1] = False
+    assert depth_metrics(gt * 3, gt, valid)["n_frames"] == 2
+    with pytest.raises(ValueError, match="no valid pixel"):
+        depth_metrics(gt, gt, torch.zeros_like(valid))
+    with pytest.raises(ValueError, match="differ in shape"):
+        depth_metrics(gt[:, :4], gt)
+    with pytest.raises(ValueError, match="must be"):
+        depth_metrics(gt[:, None].expand(3, 2, 8, 10), gt[:, None].expand(3, 2, 8, 10))
+
+
+def test_std_error_spearman():
+    rng = np.random.default_rng(0)
+    err = torch.from_numpy(rng.uniform(0, 1, size=(2, 1, 40, 50)))
+    assert std_error_spearman(err**2 + 0.1, err) == pytest.approx(1.0)
+    assert std_error_spearman(-err, err) == pytest.approx(-1.0)
+    indep = torch.from_numpy(rng.uniform(0, 1, size=err.shape))
+    assert abs(std_error_spearman(indep, err)) < 0.05
+    # only valid pixels count: make the invalid half anti-correlated
+    valid = torch.zeros_like(err, dtype=torch.bool)
+    valid[..., :25] = True
+    std = torch.where(valid, err, -err)
+    assert std_error_spearman(std, err, valid) == pytest.approx(1.0)
+    # subsampling keeps a monotone relation exact
+    assert std_error_spearman(err + 1, err, max_samples=500) == pytest.approx(1.0)
+    assert np.isnan(std_error_spearman(torch.ones_like(err), err))
+    with pytest.raises(ValueError, match="at least 3"):
+        std_error_spearman(err, err, torch.zeros_like(valid))

@@ -1,0 +1,156 @@
+import json
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+from omegaconf import OmegaConf
+
+from endorecon.data.sequence import write_poses_txt
+from endorecon.evaluation import evaluate_mesh, load_mesh, residual_stats
+from endorecon.tasks.evaluate import run
+from endorecon.utils.errors import InputError
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+
+
+def _write(mesh, path):
+    o3d.io.write_triangle_mesh(str(path), mesh)
+    return path
+
+
+def test_residual_stats_analytic():
+    r = np.arange(101) / 50.0  # 0 .. 2 mm
+    s = residual_stats(r)
+    assert s["mean_mm"] == pytest.approx(1.0) and s["median_mm"] == pytest.approx(1.0)
+    assert s["p95_mm"] == pytest.approx(1.9) and s["max_mm"] == pytest.approx(2.0)
+    assert s["frac_below_1mm"] == pytest.approx(50 / 101) and s["n_points"] == 101
+    assert s["rmse_mm"] == pytest.approx(np.sqrt((r**2).mean()))
+
+
+def test_mesh_against_itself(ct_path, tmp_path):
+    m = evaluate_mesh(ct_path, ct_path, tmp_path / "out", n_points=3000, seed=0)
+    assert m["mean_mm"] < 1e-3 and m["max_mm"] < 1e-2
+    assert m["frac_below_1mm"] == 1.0 and m["n_points"] == 3000
+    assert abs(m["sim3"]["scale"] - 1) < 1e-4
+    for f in ("metrics.json", "residual_heatmap.png", "residual_histogram.png", "residuals.npz"):
+        assert (tmp_path / "out" / f).is_file(), f
+    on_disk = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    for k in ("mean_mm", "median_mm", "p95_mm", "max_mm", "frac_below_1mm", "n_points"):
+        assert on_disk[k] == m[k]
+    assert set(on_disk["sim3"]) >= {"scale", "R", "t"} and "fitness" in on_disk["registration"]
+
+
+def test_known_normal_offset(tmp_path):
+    # Reference: a 20 mm cube.  Reconstruction: a 10x10 mm patch 0.5 mm above its top face.
+    cube = o3d.geometry.TriangleMesh.create_box(20.0, 20.0, 20.0)
+    patch = o3d.geometry.TriangleMesh.create_box(10.0, 10.0, 1e-3)
+    patch.translate([5.0, 5.0, 20.5])
+    ref, rec = _write(cube, tmp_path / "cube.ply"), _write(patch, tmp_path / "patch.ply")
+    # No registration (identity, no ICP step): the residual measure alone.
+    m = evaluate_mesh(rec, ref, tmp_path / "out", n_points=2000, registration={"init": "identity", "max_iter": 0})
+    assert m["mean_mm"] == pytest.approx(0.5005, abs=1e-3) and m["max_mm"] == pytest.approx(0.501, abs=1e-3)
+    assert m["frac_below_1mm"] == 1.0
+    # Lifted by 1.5 mm: nothing is under 1 mm.
+    patch.translate([0.0, 0.0, 1.0])
+    m = evaluate_mesh(_write(patch, tmp_path / "patch2.ply"), ref, tmp_path / "out2", n_points=2000,
+                      registration={"init": "identity", "max_iter": 0})
+    assert m["median_mm"] == pytest.approx(1.5, abs=2e-3) and m["frac_below_1mm"] == 0.0
+
+
+def test_noisy_moved_reconstruction(ct_mesh, recon_from_ct, helpers, tmp_path):
+    # A reconstruction with 0.2 mm normal noise, in arbitrary units: the residual is that noise, in mm.
+    rng = np.random.default_rng(0)
+    fine = ct_mesh.subdivide_midpoint(1)
+    fine.compute_vertex_normals()
+    v = np.asarray(fine.vertices) + np.asarray(fine.vertex_normals) * rng.normal(0, 0.2, (len(fine.vertices), 1))
+    fine.vertices = o3d.utility.Vector3dVector(v)
+    noisy = helpers.moved_mesh(fine, recon_from_ct)
+    m = evaluate_mesh(_write(noisy, tmp_path / "noisy.ply"), _write(ct_mesh, tmp_path / "ct.ply"),
+                      tmp_path / "out", n_points=4000)
+    assert 0.05 < m["mean_mm"] < 0.2 and m["max_mm"] < 1.0
+    assert abs(m["sim3"]["scale"] * recon_from_ct.scale - 1) < 5e-3
+
+
+def test_skips_complete_output_and_recomputes_on_change(ct_path, tmp_path):
+    out = tmp_path / "out"
+    evaluate_mesh(ct_path, ct_path, out, n_points=1000, registration={"init": "identity"})
+    stamp = (out / "metrics.json").stat().st_mtime_ns
+    evaluate_mesh(ct_path, ct_path, out, n_points=1000, registration={"init": "identity"})
+    assert (out / "metrics.json").stat().st_mtime_ns == stamp
+    m = evaluate_mesh(ct_path, ct_path, out, n_points=1200, registration={"init": "identity"})
+    assert m["n_points"] == 1200 and (out / "metrics.json").stat().st_mtime_ns != stamp
+
+
+@pytest.mark.parametrize("case", ["missing", "empty", "text", "point_cloud", "extension"])
+def test_bad_mesh_inputs_name_the_file(case, ct_path, tmp_path):
+    bad = tmp_path / f"bad_{case}.ply"
+    if case == "empty":
+        bad.write_bytes(b"")
+    elif case == "text":
+        bad.write_text("this is not a mesh\n")
+    elif case == "point_cloud":
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).normal(size=(50, 3))))
+        o3d.io.write_point_cloud(str(bad), pcd)
+    elif case == "extension":
+        bad = tmp_path / "bad_extension.npy"
+        bad.write_bytes(b"\x93NUMPY")
+    with pytest.raises(InputError) as e:
+        load_mesh(bad)
+    assert bad.name in str(e.value) and e.value.path == bad
+    for kw in ({"mesh_path": bad, "reference_path": ct_path}, {"mesh_path": ct_path, "reference_path": bad}):
+        with pytest.raises(InputError, match=bad.name):
+            evaluate_mesh(out_dir=tmp_path / "out", n_points=100, **kw)
+
+
+def _cfg(**kw):
+    cfg = OmegaConf.load(CONF / "evaluate.yaml")
+    cfg.pop("defaults")
+    cfg.pop("hydra")
+    cfg.merge_with(kw)
+    return cfg
+
+
+def test_task_with_trajectory(ct_mesh, ct_path, recon_from_ct, helpers, tmp_path, capsys):
+    rng = np.random.default_rng(1)
+    rec = _write(helpers.moved_mesh(ct_mesh, recon_from_ct), tmp_path / "recon.ply")
+    v = np.asarray(ct_mesh.vertices)
+    centers = v.mean(0) + rng.normal(size=(6, 3)) * v.std(0) * 0.3
+    from scipy.spatial.transform import Rotation
+
+    R_gt = Rotation.random(6, random_state=2).as_matrix()  # cam_from_ct
+    T_gt = np.tile(np.eye(4), (6, 1, 1))
+    T_gt[:, :3, :3] = R_gt
+    T_gt[:, :3, 3] = -np.einsum("kij,kj->ki", R_gt, centers)
+    # Same cameras in the reconstruction's frame: cam_from_recon = cam_from_ct @ ct_from_recon.
+    ct_from_recon = recon_from_ct.inverse().matrix()
+    T_rec = T_gt @ ct_from_recon
+    T_rec[:, :3, :] /= recon_from_ct.inverse().scale  # make the rotation part orthonormal again
+    T_rec[:, 3] = [0, 0, 0, 1]
+    names = [f"{i:04d}.png" for i in range(6)]
+    T_rec_nan = T_rec.copy()
+    T_rec_nan[5] = np.nan  # an unregistered frame is skipped
+    p_rec = write_poses_txt(tmp_path / "poses.txt", names, T_rec_nan)
+    p_gt = write_poses_txt(tmp_path / "gt_poses.txt", names, T_gt)
+    cfg = _cfg(mesh=str(rec), reference=str(ct_path), trajectory=str(p_rec), gt_trajectory=str(p_gt),
+               out=str(tmp_path / "out"), n_points=2000)
+    out = run(cfg)
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["registration"]["init"] == "trajectory"
+    assert m["mean_mm"] < 1e-3 and abs(m["sim3"]["scale"] * 0.37 - 1) < 1e-4
+    assert "mean" in capsys.readouterr().out
+    # a trajectory that shares too few frames with the ground truth
+    write_poses_txt(tmp_path / "few.txt", names[:2], T_rec[:2])
+    with pytest.raises(InputError, match="few.txt"):
+        run(_cfg(mesh=str(rec), reference=str(ct_path), trajectory=str(tmp_path / "few.txt"),
+                 gt_trajectory=str(p_gt), out=str(tmp_path / "out3"), n_points=500))
+    with pytest.raises(InputError, match="gt_trajectory"):
+        run(_cfg(mesh=str(rec), reference=str(ct_path), trajectory=str(p_rec), out=str(tmp_path / "o4")))
+
+
+def test_config_composes(tmp_path):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("evaluate", overrides=["mesh=a.ply", "reference=b.ply", f"out={tmp_path}"])
+    assert cfg.n_points == 40000 and cfg.registration.init == "auto" and cfg.out == str(tmp_path)

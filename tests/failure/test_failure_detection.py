@@ -1,0 +1,175 @@
+"""Failure detection on an analytic scene (camera inside an ellipsoid, 21 frames, 64x80)."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from endorecon.failure import METRICS, FailureReport, detect_failures, run
+from endorecon.geometry import se3_exp
+from endorecon.utils.errors import InputError
+from synthetic_scene import make_scene
+
+N = 21
+D = torch.float64
+BAD_POSE, BAD_DEPTH = 10, 5
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(n_frames=N)
+
+
+def corrupt_pose(T, k, xi):
+    T = T.clone()
+    T[k] = se3_exp(torch.tensor([xi], dtype=D))[0] @ T[k]
+    return T
+
+
+def flow_fn(scene, noise_px=0.2):
+    return lambda i, j: scene.sparse_flow_fn(i, j, noise_px=noise_px)
+
+
+def detect(scene, depth, sim, T, rel_std=0.05, cfg=None, noise_px=0.2):
+    valid = sim > 0
+    return detect_failures(depth, rel_std * depth, sim, valid, scene.K, T, scene.mask, flow_fn(scene, noise_px), cfg or {})
+
+
+def test_clean_sequence_is_not_flagged(scene):
+    sim = scene.render(scene.cam_from_world)
+    r = detect(scene, scene.depth, sim, scene.cam_from_world)
+    assert list(r.frames) == [0, 5, 10, 15, 20]
+    assert r.flagged_frames == []
+    for m in METRICS:
+        assert np.isfinite(r.metrics[m]).all(), m
+    # Exact depths: the dense metrics sit at their minimum 0.5·log σ² (σ = 5 % of depth ~ 1).
+    assert (r.metrics["dense_simulation"] < -2.0).all()
+
+
+@pytest.mark.parametrize("render_at", ["true_pose", "corrupted_pose"])
+def test_corrupted_pose_and_depth_are_flagged(scene, render_at):
+    T = corrupt_pose(scene.cam_from_world, BAD_POSE, [0.04, 0.0, 0.02, 0.0, 0.04, 0.0])  # ~2.3°, 4.5 % of depth
+    # The mesh rendered at the true pose (refined pose) or at the wrong one (as the loop would).
+    sim = scene.render(scene.cam_from_world if render_at == "true_pose" else T)
+    depth = scene.depth.clone()
+    depth[BAD_DEPTH] *= 1.2  # a frame whose network depth is 20 % off
+    r = detect(scene, depth, sim, T)
+    assert r.flagged_frames == [BAD_DEPTH, BAD_POSE]
+    reasons = dict(zip(r.frames.tolist(), r.reasons))
+    assert "dense_simulation" in reasons[BAD_DEPTH]
+    assert "sparse_flow" in reasons[BAD_POSE]
+    assert all(reasons[f] == "" for f in (0, 15, 20))
+
+
+def test_neighbor_reduction_min_blames_only_the_bad_frame(scene):
+    T = corrupt_pose(scene.cam_from_world, BAD_POSE, [0.04, 0.0, 0.02, 0.0, 0.04, 0.0])
+    sim = scene.render(scene.cam_from_world)
+    assert detect(scene, scene.depth, sim, T).flagged_frames == [BAD_POSE]
+    # With "max" the good neighbours 5 and 15 are dragged in through their pair with frame 10.
+    assert detect(scene, scene.depth, sim, T, cfg={"neighbor_reduction": "max"}).flagged_frames == [5, 10, 15]
+
+
+def test_depth_consistency_on_simulated_depth_reacts_to_pose_error(scene):
+    sim = scene.render(scene.cam_from_world)  # rendered at the true poses, checked at a wrong one
+    clean = detect(scene, scene.depth, sim, scene.cam_from_world, rel_std=0.01)
+    T = corrupt_pose(scene.cam_from_world, BAD_POSE, [0.0, 0.0, 0.2, 0.0, 0.0, 0.0])  # 20 % along the axis
+    bad = detect(scene, scene.depth, sim, T, rel_std=0.01)
+    k = list(bad.frames).index(BAD_POSE)
+    assert clean.metrics["depth_consistency"][k] < 0 < 2.0 < bad.metrics["depth_consistency"][k]
+    assert "depth_consistency" in bad.reasons[k]
+    # A depth error does not change simulated depth: only the "network" source sees it in this metric.
+    depth = scene.depth.clone()
+    depth[BAD_DEPTH] *= 1.3
+    kd = list(bad.frames).index(BAD_DEPTH)
+    sim_src = detect(scene, depth, sim, scene.cam_from_world, rel_std=0.01)
+    net_src = detect(scene, depth, sim, scene.cam_from_world, rel_std=0.01, cfg={"depth_consistency_source": "network"})
+    assert sim_src.metrics["depth_consistency"][kd] == pytest.approx(clean.metrics["depth_consistency"][kd], abs=0.2)
+    assert net_src.metrics["depth_consistency"][kd] > 2.0
+
+
+def test_metrics_are_scale_invariant_with_normalisation(scene):
+    s = 50.0  # e.g. millimetres instead of normalised SfM units
+    T = corrupt_pose(scene.cam_from_world, BAD_POSE, [0.04, 0.0, 0.02, 0.0, 0.04, 0.0])
+    sim = scene.render(scene.cam_from_world)
+    Ts = T.clone()
+    Ts[:, :3, 3] *= s
+    ref = detect(scene, scene.depth, sim, T, noise_px=0.0)
+    scaled = detect(scene, s * scene.depth, s * sim, Ts, noise_px=0.0)
+    raw = detect(scene, s * scene.depth, s * sim, Ts, cfg={"normalize_depth": False}, noise_px=0.0)
+    assert scaled.depth_scale == pytest.approx(s * ref.depth_scale)
+    for m in METRICS:
+        np.testing.assert_allclose(scaled.metrics[m], ref.metrics[m], rtol=1e-6, atol=1e-6)
+    # Without normalisation the depth NLLs shift by log(s / median) (NLL(s·d, s·σ) = NLL(d, σ) + log s).
+    np.testing.assert_allclose(
+        raw.metrics["dense_simulation"], ref.metrics["dense_simulation"] + math.log(scaled.depth_scale), atol=1e-4
+    )  # (not exact: eps = 1e-8 is added to σ², whose size changes with the scale)
+
+
+def test_unregistered_frame_is_flagged_and_skipped_as_neighbour(scene):
+    T = scene.cam_from_world.clone()
+    T[BAD_POSE] = float("nan")
+    sim = scene.render(scene.cam_from_world)
+    r = detect(scene, scene.depth, sim, T)
+    assert r.flagged_frames == [BAD_POSE]
+    k = list(r.frames).index(BAD_POSE)
+    assert r.reasons[k] == "unregistered" and all(np.isnan(r.metrics[m][k]) for m in METRICS)
+    # Frame 5 and 15 still have their other neighbour.
+    assert np.isfinite(r.metrics["sparse_flow"][[1, 3]]).all()
+
+
+def test_bad_input(scene):
+    sim = scene.render(scene.cam_from_world)
+    with pytest.raises(ValueError, match="sim_depth"):
+        detect_failures(scene.depth, scene.depth, sim[:, :, :10], sim > 0, scene.K, scene.cam_from_world,
+                        scene.mask, flow_fn(scene), {})
+    with pytest.raises(ValueError, match="depth_consistency_source"):
+        detect(scene, scene.depth, sim, scene.cam_from_world, cfg={"depth_consistency_source": "mesh"})
+    with pytest.raises(ValueError, match="interval"):
+        detect(scene, scene.depth, sim, scene.cam_from_world, cfg={"interval": 0})
+
+
+def _report(flagged_frames, n=40, interval=5):
+    frames = np.arange(0, n, interval)
+    flagged = np.isin(frames, flagged_frames)
+    metrics = {m: np.where(flagged, 3.0, -1.0) for m in METRICS}
+    exceeded = {m: flagged.copy() if m == "sparse_flow" else np.zeros_like(flagged) for m in METRICS}
+    reasons = ["sparse_flow" if f else "" for f in flagged]
+    return FailureReport(frames, metrics, exceeded, flagged, reasons, interval=interval, n_frames=n)
+
+
+def test_ranges_and_repeats():
+    r = _report([5, 10, 25, 35])
+    assert r.flagged_ranges() == [(5, 10), (25, 25), (35, 35)]
+    assert r.flagged_ranges(min_gap=10) == [(5, 10), (25, 35)]
+    assert r.flagged_ranges(pad=3) == [(2, 13), (22, 28), (32, 38)]
+    assert r.excluded_frames() == [3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 23, 24, 25, 26, 27, 33, 34, 35, 36, 37]
+    assert r.excluded_frames(radius=0) == [5, 10, 25, 35]
+    prev = _report([10, 15, 30])
+    assert r.repeat_ranges(prev) == [(5, 10)]
+    assert r.repeat_ranges(_report([])) == []
+
+
+def test_csv_roundtrip_and_stage(tmp_path, scene):
+    r = _report([5, 10, 25])
+    path = r.to_csv(tmp_path / "failures.csv")
+    header = path.read_text().splitlines()[0]
+    assert header == "frame,dense_simulation,sparse_flow,depth_consistency,flagged,reason"
+    back = FailureReport.read_csv(path)
+    assert back.flagged_frames == [5, 10, 25]
+    np.testing.assert_allclose(back.metrics["sparse_flow"], r.metrics["sparse_flow"])
+    assert (back.exceeded["sparse_flow"] == r.exceeded["sparse_flow"]).all()
+    assert "3/8 checked frames flagged" in r.summary()
+    with pytest.raises(InputError, match="missing"):
+        FailureReport.read_csv(tmp_path / "nope.csv")
+    (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(InputError, match="not a failure report"):
+        FailureReport.read_csv(tmp_path / "bad.csv")
+    # Stage: writes failures.csv, then skips the complete output.
+    sim = scene.render(scene.cam_from_world)
+    out = run({}, scene.depth, 0.05 * scene.depth, sim, sim > 0, scene.K, scene.cam_from_world, scene.mask,
+              flow_fn(scene), tmp_path / "it0")
+    assert FailureReport.read_csv(out).flagged_frames == []
+    mtime = out.stat().st_mtime_ns
+    assert run({}, None, None, None, None, None, None, None, None, tmp_path / "it0") == out
+    assert out.stat().st_mtime_ns == mtime

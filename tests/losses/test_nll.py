@@ -1,0 +1,237 @@
+"""Analytic values, gradchecks, masking and NaN isolation of the four NLL losses."""
+
+import math
+
+import pytest
+import torch
+
+from endorecon.geometry import flow_from_depth
+from endorecon.losses import (
+    dense_simulation_loss,
+    depth_consistency_loss,
+    flow_depth_derivative,
+    gaussian_nll,
+    sparse_depth_loss,
+    sparse_flow_loss,
+)
+
+H, W = 12, 16
+
+
+def _K(B=1, dtype=torch.float64):
+    K = torch.tensor([[14.0, 0.0, 7.5], [0.0, 13.0, 5.5], [0.0, 0.0, 1.0]], dtype=dtype)
+    return K.expand(B, 3, 3).clone()
+
+
+def _pose(tx=0.0, ty=0.0, tz=0.0, angle=0.0, B=1, dtype=torch.float64):
+    T = torch.eye(4, dtype=dtype).repeat(B, 1, 1)
+    c, s = math.cos(angle), math.sin(angle)
+    T[:, 0, 0], T[:, 0, 2], T[:, 2, 0], T[:, 2, 2] = c, s, -s, c
+    T[:, 0, 3], T[:, 1, 3], T[:, 2, 3] = tx, ty, tz
+    return T
+
+
+def _rand_mask(B=2, p=0.5, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(B, 1, H, W, generator=g) < p
+
+
+def test_gaussian_nll_formula():
+    x, mu, var = torch.tensor([2.0]), torch.tensor([1.0]), torch.tensor([4.0])
+    assert gaussian_nll(x, mu, var, eps=0.0).item() == pytest.approx(0.5 * math.log(4.0) + 1.0 / 8.0)
+
+
+# ---------------------------------------------------------------- sparse depth / dense simulation
+@pytest.mark.parametrize("loss_fn", [sparse_depth_loss, dense_simulation_loss])
+def test_pixel_losses_analytic(loss_fn):
+    B = 2
+    depth = torch.full((B, 1, H, W), 3.0, dtype=torch.float64)
+    std = torch.full_like(depth, 0.5)
+    valid = _rand_mask(B)
+    same = loss_fn(depth, std, depth.clone(), valid, eps=1e-8)
+    assert same.item() == pytest.approx(0.5 * math.log(0.25 + 1e-8), rel=1e-12)
+    off = loss_fn(depth, std, depth + 0.2, valid, eps=1e-8, reduction="none")
+    want = 0.5 * math.log(0.25 + 1e-8) + 0.04 / (2 * (0.25 + 1e-8))
+    assert off.shape == (B,)
+    torch.testing.assert_close(off, torch.full((B,), want, dtype=torch.float64))
+
+
+def test_pixel_loss_reductions_and_empty():
+    depth = torch.ones(2, 1, H, W, dtype=torch.float64)
+    obs = depth.clone()
+    obs[1] = 2.0
+    valid = torch.zeros(2, 1, H, W, dtype=torch.bool)
+    valid[0, 0, :2] = True  # 32 pixels in sample 0
+    valid[1, 0, 0, :4] = True  # 4 pixels in sample 1
+    per = sparse_depth_loss(depth, torch.ones_like(depth), obs, valid, reduction="none")
+    torch.testing.assert_close(per, torch.tensor([0.0, 0.5], dtype=torch.float64), atol=1e-7, rtol=0)
+    mean = sparse_depth_loss(depth, torch.ones_like(depth), obs, valid)
+    assert mean.item() == pytest.approx(4 * 0.5 / 36, abs=1e-7)
+    none = torch.zeros_like(valid)
+    assert dense_simulation_loss(depth, depth, obs, none).item() == 0.0
+    assert dense_simulation_loss(depth, depth, obs, none, reduction="none").tolist() == [0.0, 0.0]
+
+
+@pytest.mark.parametrize("loss_fn", [sparse_depth_loss, dense_simulation_loss])
+def test_pixel_losses_mask_and_nan(loss_fn):
+    g = torch.Generator().manual_seed(1)
+    depth = (torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) + 1).requires_grad_()
+    std = (torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) + 0.1).requires_grad_()
+    obs = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) + 1
+    valid = _rand_mask()
+    base = loss_fn(depth, std, obs, valid)
+    wild = torch.where(valid, obs, torch.full_like(obs, 1e6))
+    assert loss_fn(depth, std, wild, valid).item() == pytest.approx(base.item(), rel=1e-12)
+    nan_obs = torch.where(valid, obs, torch.full_like(obs, float("nan")))
+    d_nan = torch.where(valid, depth, torch.full_like(obs, float("nan")))
+    s_nan = torch.where(valid, std, torch.full_like(obs, float("inf")))
+    out = loss_fn(d_nan, s_nan, nan_obs, valid)
+    assert out.item() == pytest.approx(base.item(), rel=1e-12)
+    out.backward()
+    assert torch.isfinite(depth.grad).all() and torch.isfinite(std.grad).all()
+    assert (depth.grad[~valid] == 0).all()
+
+
+@pytest.mark.parametrize("loss_fn", [sparse_depth_loss, dense_simulation_loss])
+def test_pixel_losses_gradcheck(loss_fn):
+    g = torch.Generator().manual_seed(2)
+    depth = (torch.rand(1, 1, 4, 5, generator=g, dtype=torch.float64) + 1).requires_grad_()
+    std = (torch.rand(1, 1, 4, 5, generator=g, dtype=torch.float64) + 0.2).requires_grad_()
+    obs = (torch.rand(1, 1, 4, 5, generator=g, dtype=torch.float64) + 1).requires_grad_()
+    valid = torch.rand(1, 1, 4, 5, generator=g) < 0.6
+    for red in ("mean", "none"):
+        assert torch.autograd.gradcheck(lambda d, s, o: loss_fn(d, s, o, valid, reduction=red), (depth, std, obs))
+
+
+def test_bad_inputs():
+    d = torch.ones(1, 1, H, W)
+    with pytest.raises(ValueError, match="std"):
+        sparse_depth_loss(d, torch.ones(1, 1, H, W + 1), d, d > 0)
+    with pytest.raises(ValueError, match="reduction"):
+        sparse_depth_loss(d, d, d, d > 0, reduction="sum")
+    with pytest.raises(ValueError, match="sparse_flow_ij"):
+        sparse_flow_loss(d, d, _K(dtype=torch.float32), _pose(dtype=torch.float32), d, d > 0)
+
+
+# ---------------------------------------------------------------- depth consistency
+def test_depth_consistency_identical_plane():
+    """A fronto-parallel plane at z=4 seen by a laterally moved camera: warped depth equals depth_i."""
+    B = 1
+    depth = torch.full((B, 1, H, W), 4.0, dtype=torch.float64)
+    std = torch.full_like(depth, 0.3)
+    T = _pose(tx=0.5)
+    mask = torch.ones(B, 1, H, W, dtype=torch.bool)
+    per = depth_consistency_loss(depth, std, depth, std, _K(), T, mask, reduction="none")
+    # std_j carried linearly with d z_i / d d_j = 1 on a pure translation: σ² = 2·0.09.
+    assert per.item() == pytest.approx(0.5 * math.log(0.18 + 1e-8), rel=1e-9)
+    # Offset of j's plane by 0.1: every valid pixel sees it (x − μ = 0.1).
+    per_off = depth_consistency_loss(depth, std, depth + 0.1, std, _K(), T, mask, reduction="none")
+    want = 0.5 * math.log(0.18 + 1e-8) + 0.01 / (2 * (0.18 + 1e-8))
+    assert per_off.item() == pytest.approx(want, rel=1e-9)
+
+
+def test_depth_consistency_mask_and_nan():
+    g = torch.Generator().manual_seed(3)
+    d_i = (torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) * 0.2 + 4).requires_grad_()
+    d_j = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) * 0.2 + 4
+    s = torch.full_like(d_j, 0.2)
+    T, K = _pose(tx=0.3, angle=0.05, B=2), _K(2)
+    mask = _rand_mask(2, 0.6, seed=4)
+    base = depth_consistency_loss(d_i, s, d_j, s, K, T, mask, reduction="none")
+    wild = torch.where(mask, d_i, torch.full_like(d_i, float("nan")))
+    wild_s = torch.where(mask, s, torch.full_like(s, -1e9))
+    out = depth_consistency_loss(wild, wild_s, d_j, s, K, T, mask, reduction="none")
+    torch.testing.assert_close(out, base)
+    out.sum().backward()
+    assert torch.isfinite(d_i.grad).all() and (d_i.grad[~mask] == 0).all()
+
+
+def test_depth_consistency_gradcheck_including_pose():
+    g = torch.Generator().manual_seed(5)
+    h, w = 6, 8
+    K = torch.tensor([[[7.0, 0.0, 3.5], [0.0, 7.0, 2.5], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+    d_i = (torch.rand(1, 1, h, w, generator=g, dtype=torch.float64) * 0.3 + 4).requires_grad_()
+    d_j = (torch.rand(1, 1, h, w, generator=g, dtype=torch.float64) * 0.3 + 4).requires_grad_()
+    s_i = (torch.rand(1, 1, h, w, generator=g, dtype=torch.float64) * 0.2 + 0.1).requires_grad_()
+    s_j = (torch.rand(1, 1, h, w, generator=g, dtype=torch.float64) * 0.2 + 0.1).requires_grad_()
+    T = _pose(tx=0.2, ty=0.1, angle=0.03).requires_grad_()
+    mask = torch.ones(1, 1, h, w, dtype=torch.bool)
+    fn = lambda a, b, c, d, t: depth_consistency_loss(a, b, c, d, K, t, mask)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (d_i, s_i, d_j, s_j, T))
+
+
+# ---------------------------------------------------------------- sparse flow
+def _flow_case(B=1, tx=0.4, depth_value=4.0, sigma=0.2):
+    depth = torch.full((B, 1, H, W), depth_value, dtype=torch.float64)
+    std = torch.full_like(depth, sigma)
+    K, T = _K(B), _pose(tx=tx, B=B)
+    # Pure lateral translation of a fronto-parallel plane: flow_u = fx·tx/z, flow_v = 0 everywhere.
+    flow = torch.zeros(B, 2, H, W, dtype=torch.float64)
+    flow[:, 0] = 14.0 * tx / depth_value
+    valid = _rand_mask(B, 0.3, seed=6)
+    return depth, std, K, T, flow, valid
+
+
+def test_flow_depth_derivative_matches_finite_differences():
+    g = torch.Generator().manual_seed(7)
+    d = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) + 3
+    K, T = _K(2), _pose(tx=0.3, ty=-0.2, tz=0.1, angle=0.1, B=2)
+    _, z_j = flow_from_depth(d, K, T)
+    jac = flow_depth_derivative(d, K, T, z_j)
+    h = 1e-6
+    fd = (flow_from_depth(d + h, K, T)[0] - flow_from_depth(d - h, K, T)[0]) / (2 * h)
+    torch.testing.assert_close(jac, fd, rtol=1e-6, atol=1e-8)
+
+
+def test_sparse_flow_analytic():
+    depth, std, K, T, flow, valid = _flow_case()
+    floor = 1e-3
+    # ∂u/∂d = −fx·tx/d²; normalised by W.  v has only the floor.
+    var_u = (14.0 * 0.4 / 16.0 * 0.2 / 16.0) ** 2 + floor**2
+    var_v = floor**2
+    want = 0.5 * math.log(var_u + 1e-8) + 0.5 * math.log(var_v + 1e-8)
+    got = sparse_flow_loss(depth, std, K, T, flow, valid, flow_std_floor=floor)
+    assert got.item() == pytest.approx(want, rel=1e-9)
+    off = flow.clone()
+    off[:, 1] += 0.8  # 0.8 px in v = 0.8/H normalised
+    got_off = sparse_flow_loss(depth, std, K, T, off, valid, flow_std_floor=floor, reduction="none")
+    want_off = want + (0.8 / H) ** 2 / (2 * (var_v + 1e-8))
+    assert got_off.item() == pytest.approx(want_off, rel=1e-9)
+
+
+def test_sparse_flow_mask_and_nan():
+    g = torch.Generator().manual_seed(8)
+    depth = (torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) + 3).requires_grad_()
+    std = torch.full_like(depth, 0.2)
+    K, T = _K(2), _pose(tx=0.3, angle=0.05, B=2)
+    flow = torch.randn(2, 2, H, W, generator=g, dtype=torch.float64)
+    valid = _rand_mask(2, 0.3, seed=9)
+    base = sparse_flow_loss(depth, std, K, T, flow, valid, reduction="none")
+    nan = torch.where(valid, depth, torch.full_like(depth, float("nan")))
+    flow_nan = torch.where(valid, flow, torch.full_like(flow, float("inf")))
+    out = sparse_flow_loss(nan, std, K, T, flow_nan, valid, reduction="none")
+    torch.testing.assert_close(out, base)
+    wild = torch.where(valid, flow, flow * 1e5)
+    torch.testing.assert_close(sparse_flow_loss(depth, std, K, T, wild, valid, reduction="none"), base)
+    out.sum().backward()
+    assert torch.isfinite(depth.grad).all() and (depth.grad[~valid] == 0).all()
+
+
+def test_sparse_flow_ignores_points_behind_camera_j():
+    depth, std, K, _, flow, valid = _flow_case()
+    T = _pose(tz=-10.0)  # camera j moved 10 units forward: the plane at z=4 is behind it
+    out = sparse_flow_loss(depth, std, K, T, flow, valid, reduction="none")
+    assert out.item() == 0.0
+
+
+def test_sparse_flow_gradcheck_including_pose():
+    g = torch.Generator().manual_seed(10)
+    h, w = 5, 6
+    K = torch.tensor([[[6.0, 0.0, 2.5], [0.0, 6.0, 2.0], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+    d = (torch.rand(1, 1, h, w, generator=g, dtype=torch.float64) + 3).requires_grad_()
+    s = (torch.rand(1, 1, h, w, generator=g, dtype=torch.float64) * 0.3 + 0.1).requires_grad_()
+    T = _pose(tx=0.3, ty=0.1, tz=0.2, angle=0.05).requires_grad_()
+    flow = torch.randn(1, 2, h, w, generator=g, dtype=torch.float64)
+    valid = torch.rand(1, 1, h, w, generator=g) < 0.7
+    fn = lambda a, b, t: sparse_flow_loss(a, b, K, t, flow, valid, flow_std_floor=1e-2, reduction="none")  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (d, s, T))

@@ -1,0 +1,261 @@
+"""DepthModule on a tiny synthetic pair batch: a tilted plane seen from two poses.
+
+Sparse depth and sparse flow are computed analytically from the plane (ray-plane
+intersection and projection) in the test.
+"""
+
+import math
+
+import lightning as L
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from endorecon.module import DepthModule
+from endorecon.networks import FCDenseNet
+
+H, W = 64, 80
+TINY_NET = {
+    "_target_": "endorecon.networks.FCDenseNet",
+    "first_conv_channels": 8,
+    "growth_rate": 4,
+    "down_layers": [1, 1, 1],
+    "bottleneck_layers": 1,
+    "dropout": 0.0,
+}
+
+
+def _model_cfg(**kw):
+    cfg = {
+        "net": dict(TINY_NET),
+        "optimizer": {"_target_": "torch.optim.AdamW", "_partial_": True, "lr": 3e-3},
+        "scheduler": {"_target_": "torch.optim.lr_scheduler.OneCycleLR", "_partial_": True, "max_lr": 3e-3},
+        "log_images_every_n_steps": 0,
+    }
+    cfg.update(kw)
+    return cfg
+
+
+def _plane_depth(K, n, c):
+    """z-depth of the plane n·X = c at every pixel centre: z = c / (n · K⁻¹(u,v,1))."""
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    rays = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)])
+    return c / (n.view(3, 1, 1) * rays).sum(0), rays
+
+
+def _sparse_flow(K, depth_a, rays, T_ba, valid):
+    """Pixel displacement a -> b of the valid pixels: project T_ba·(depth·ray)."""
+    X = depth_a * rays
+    Xb = torch.einsum("ij,jhw->ihw", T_ba[:3, :3], X) + T_ba[:3, 3].view(3, 1, 1)
+    u = K[0, 0] * Xb[0] / Xb[2] + K[0, 2]
+    v = K[1, 1] * Xb[1] / Xb[2] + K[1, 2]
+    gv, gu = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    flow = torch.stack([u - gu, v - gv])
+    return torch.where(valid, flow, torch.zeros_like(flow))
+
+
+def make_batch(B=2, seed=0, scale=3.0):
+    """Frames i and j of the plane 0.2x + 0.1y + z = 5 (SfM units = ``scale`` × metric)."""
+    g = torch.Generator().manual_seed(seed)
+    K = torch.tensor([[60.0, 0.0, 39.5], [0.0, 60.0, 31.5], [0.0, 0.0, 1.0]])
+    n, c = torch.tensor([0.2, 0.1, 1.0]), 5.0
+    a = 0.05
+    T = torch.eye(4)
+    T[0, 0], T[0, 2], T[2, 0], T[2, 2] = math.cos(a), math.sin(a), -math.sin(a), math.cos(a)
+    T[:3, 3] = torch.tensor([0.4, 0.1, 0.2])
+    T_inv = torch.linalg.inv(T)
+    depth_i, rays = _plane_depth(K, n, c)
+    n_j = T[:3, :3] @ n  # plane in j: n_j·X = c + n_j·t
+    depth_j, _ = _plane_depth(K, n_j, c + float(n_j @ T[:3, 3]))
+    mask = torch.zeros(1, H, W, dtype=torch.bool)
+    mask[:, 4:-4, 4:-4] = True
+    tex = torch.nn.functional.interpolate(torch.rand(1, 3, 8, 10, generator=g), size=(H, W), mode="bilinear")[0]
+    batch = {k: [] for k in ("image_i", "image_j", "sparse_valid_i", "sparse_valid_j")}
+    for _ in range(B):
+        for key in batch:
+            if key.startswith("image"):
+                batch[key].append((tex + 0.05 * torch.rand(3, H, W, generator=g)).clamp(0, 1))
+            else:
+                batch[key].append((torch.rand(1, H, W, generator=g) < 0.02) & mask)
+    batch = {k: torch.stack(v) for k, v in batch.items()}
+    vi, vj = batch["sparse_valid_i"], batch["sparse_valid_j"]
+    batch.update(
+        mask_i=mask.expand(B, 1, H, W).clone(),
+        mask_j=mask.expand(B, 1, H, W).clone(),
+        K=K.expand(B, 3, 3).clone(),
+        cam_j_from_cam_i=torch.cat([T[:3], torch.cat([T[3:, :3], T[3:, 3:]], 1)]).expand(B, 4, 4).clone(),
+        sparse_depth_i=torch.where(vi, scale * depth_i, torch.zeros(())),
+        sparse_depth_j=torch.where(vj, scale * depth_j, torch.zeros(())),
+        sparse_flow_ij=torch.stack([_sparse_flow(K, depth_i, rays, T, vi[b]) for b in range(B)]),
+        sparse_flow_ji=torch.stack([_sparse_flow(K, depth_j, rays, T_inv, vj[b]) for b in range(B)]),
+        sparse_flow_valid_ij=vi.clone(),
+        sparse_flow_valid_ji=vj.clone(),
+        sim_depth_i=torch.zeros(B, 1, H, W),
+        sim_depth_j=torch.zeros(B, 1, H, W),
+        sim_valid_i=torch.zeros(B, 1, H, W, dtype=torch.bool),
+        sim_valid_j=torch.zeros(B, 1, H, W, dtype=torch.bool),
+        index_i=torch.arange(B),
+        index_j=torch.arange(B) + 3,
+        has_sim=torch.zeros(B, dtype=torch.bool),
+    )
+    # SfM poses are in SfM units too.
+    batch["cam_j_from_cam_i"][:, :3, 3] *= scale
+    return batch
+
+
+class _Record(L.Callback):
+    def __init__(self):
+        self.losses = []
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+        self.losses.append(None if outputs is None else float(outputs["loss"]))
+
+
+def _trainer(tmp_path, steps, callbacks=(), **kw):
+    return L.Trainer(
+        default_root_dir=tmp_path, max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False,
+        enable_progress_bar=False, enable_model_summary=False, callbacks=list(callbacks), gradient_clip_val=1.0, **kw,
+    )  # fmt: skip
+
+
+def test_synthetic_plane_is_consistent():
+    """The analytic batch itself: GT depth gives (near) the NLL minimum of every loss with a tiny std."""
+    from endorecon.geometry import flow_from_depth
+
+    b = make_batch(B=1, scale=1.0)
+    depth_i, _ = _plane_depth(b["K"][0], torch.tensor([0.2, 0.1, 1.0]), 5.0)
+    flow, _ = flow_from_depth(depth_i[None, None], b["K"], b["cam_j_from_cam_i"])
+    v = b["sparse_flow_valid_ij"]
+    torch.testing.assert_close(flow[v.expand(-1, 2, -1, -1)], b["sparse_flow_ij"][v.expand(-1, 2, -1, -1)])
+
+
+def test_training_reduces_loss_without_nan(tmp_path):
+    torch.manual_seed(0)
+    module = DepthModule(_model_cfg(), {"warmup_epochs": 0})
+    rec = _Record()
+    batch = make_batch()
+    _trainer(tmp_path, 30, [rec]).fit(module, DataLoader([batch] * 30, batch_size=None))
+    assert None not in rec.losses and all(math.isfinite(x) for x in rec.losses)
+    first, last = sum(rec.losses[:5]) / 5, sum(rec.losses[-5:]) / 5
+    assert last < first - 0.1 * abs(first), (first, last)
+    assert all(torch.isfinite(p).all() for p in module.parameters())
+    parts = module.compute_losses(batch)
+    assert all(torch.isfinite(parts[k]) for k in ("sparse_depth", "depth_consistency", "sparse_flow"))
+    assert parts["dense_simulation"].item() == 0.0 and parts["dense_simulation_active"].item() == 0.0
+
+
+def test_loss_weights_and_warmup_honoured():
+    torch.manual_seed(0)
+    w = {"sparse_depth": 2.0, "depth_consistency": 0.3, "sparse_flow": 7.0, "dense_simulation": 0.5}
+    module = DepthModule(_model_cfg(), {**w, "warmup_epochs": 2})
+    batch = make_batch()
+    batch["has_sim"][:] = True
+    batch["sim_valid_i"][:, :, 10:20, 10:20] = True
+    batch["sim_depth_i"][:] = 9.0
+    with torch.no_grad():
+        parts = module.compute_losses(batch)
+    assert parts["dense_simulation_active"].item() == 1.0
+    total_warm, shares_warm = module.total_loss(parts, warmup=True)
+    assert set(shares_warm) == {"sparse_depth", "sparse_flow"}
+    torch.testing.assert_close(total_warm, 2.0 * parts["sparse_depth"] + 7.0 * parts["sparse_flow"])
+    total, shares = module.total_loss(parts, warmup=False)
+    want = sum(w[k] * parts[k] for k in w)
+    torch.testing.assert_close(total, want)
+    assert module.in_warmup()  # current_epoch 0 < 2
+    # has_sim = False switches the dense simulation loss off even with valid pixels.
+    batch["has_sim"][:] = False
+    with torch.no_grad():
+        assert module.compute_losses(batch)["dense_simulation_active"].item() == 0.0
+
+
+def test_unknown_loss_key_rejected():
+    with pytest.raises(ValueError, match="unknown cfg.loss keys"):
+        DepthModule(_model_cfg(), {"sparse_flw": 1.0})
+
+
+class _ParamsChanged(L.Callback):
+    def __init__(self):
+        self.changed = []
+
+    def on_train_batch_start(self, trainer, module, batch, batch_idx):
+        self._before = [p.detach().clone() for p in module.parameters()]
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+        self.changed.append(any(not torch.equal(a, p) for a, p in zip(self._before, module.parameters())))
+
+
+def test_non_finite_batch_is_skipped(tmp_path):
+    torch.manual_seed(0)
+    module = DepthModule(_model_cfg(), {"warmup_epochs": 0})
+    good = make_batch()
+    bad = make_batch()
+    bad["image_i"][0, :, 20, 20] = float("nan")
+    rec = _ParamsChanged()
+    _trainer(tmp_path, 3, [rec]).fit(module, DataLoader([good, bad, good], batch_size=None))
+    assert rec.changed == [True, False, True]
+    assert module.skipped_batches == 1
+    assert all(torch.isfinite(p).all() for p in module.parameters())
+
+
+def test_non_finite_gradients_drop_the_step():
+    module = DepthModule(_model_cfg(), {})
+    params = list(module.parameters())
+    for p in params:
+        p.grad = torch.zeros_like(p)
+    module.on_before_optimizer_step(None)
+    assert module.skipped_batches == 0 and params[0].grad is not None
+    params[3].grad[...] = float("nan")
+    module.on_before_optimizer_step(None)
+    assert module.skipped_batches == 1 and all(p.grad is None for p in params)
+
+
+def test_checkpoint_round_trip_and_predict(tmp_path):
+    torch.manual_seed(0)
+    module = DepthModule(_model_cfg(), {"warmup_epochs": 0, "sparse_flow": 50.0})
+    batch = make_batch()
+    trainer = _trainer(tmp_path, 3)
+    trainer.fit(module, DataLoader([batch] * 3, batch_size=None))
+    module.skipped_batches = 4
+    path = tmp_path / "m.ckpt"
+    trainer.save_checkpoint(path)
+    loaded = DepthModule.load_from_checkpoint(path)
+    assert loaded.weights["sparse_flow"] == 50.0 and loaded.skipped_batches == 4
+    assert isinstance(loaded.net, FCDenseNet)
+    img, mask = batch["image_i"], batch["mask_i"]
+    d0, s0 = module.predict(img, mask)
+    d1, s1 = loaded.predict(img, mask)
+    torch.testing.assert_close(d0, d1)
+    torch.testing.assert_close(s0, s1)
+    # Scaled prediction agrees with the sparse depth in the ratio-of-sums sense.
+    d, s = loaded.predict(img, mask, batch["sparse_depth_i"], batch["sparse_valid_i"])
+    v = batch["sparse_valid_i"]
+    for b in range(img.shape[0]):
+        ratio = batch["sparse_depth_i"][b][v[b]].sum() / d[b][v[b]].sum()
+        assert ratio.item() == pytest.approx(1.0, rel=1e-5)
+    torch.testing.assert_close(s / d, s1 / d1)  # std scales with depth
+    assert loaded.training  # predict restores the mode
+
+
+def test_validation_and_images_logged(tmp_path):
+    from lightning.pytorch.loggers import TensorBoardLogger
+
+    torch.manual_seed(0)
+    module = DepthModule(_model_cfg(log_images_every_n_steps=1), {"warmup_epochs": 1})
+    batch = make_batch()
+    logger = TensorBoardLogger(tmp_path, name="tb")
+    trainer = L.Trainer(
+        default_root_dir=tmp_path, max_epochs=1, accelerator="cpu", logger=logger, enable_checkpointing=False,
+        enable_progress_bar=False, enable_model_summary=False, log_every_n_steps=1, num_sanity_val_steps=0,
+    )  # fmt: skip
+    trainer.fit(module, DataLoader([batch] * 2, batch_size=None), DataLoader([batch], batch_size=None))
+    m = trainer.callback_metrics
+    for key in ("val/loss", "val/sparse_flow", "train/total_step", "train/sparse_depth_weighted_step",
+                "train/depth_consistency_weighted_step", "train/skipped_batches_step", "train/lr"):
+        assert key in m, (key, sorted(m))
+    assert m["train/depth_consistency_weighted_step"].item() == 0.0  # warm-up epoch: weighted 0
+    assert m["train/dense_simulation_step"].item() == 0.0
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    ev = EventAccumulator(str(logger.log_dir))
+    ev.Reload()
+    assert "train/input_depth_std_sparse_error" in ev.Tags()["images"]

@@ -1,0 +1,59 @@
+"""FC-DenseNet: sizes, positivity, std floor, parameter count, size checks."""
+
+import pytest
+import torch
+
+from endorecon.networks import FCDenseNet, count_parameters
+
+TINY = dict(first_conv_channels=8, growth_rate=4, down_layers=(1, 1, 1), bottleneck_layers=1, dropout=0.0)
+
+
+def test_paper_configuration_parameter_count():
+    # FC-DenseNet-57 with two 1x1 heads: the paper's implementation has ~1.37 M.
+    n = count_parameters(FCDenseNet())
+    assert 1.3e6 < n < 1.45e6
+
+
+@pytest.mark.parametrize("hw", [(64, 80), (128, 160)])
+def test_outputs_positive_with_floor(hw):
+    torch.manual_seed(0)
+    net = FCDenseNet(**TINY, std_floor=0.05)
+    img = torch.rand(2, 3, *hw)
+    mask = torch.ones(2, 1, *hw, dtype=torch.bool)
+    depth, std = net(img, mask)
+    assert depth.shape == std.shape == (2, 1, *hw)
+    assert (depth > 0).all() and (std >= 0.05).all()
+    with torch.no_grad():
+        net.std_head.bias.fill_(-100.0)  # softplus -> 0: the floor remains
+        assert torch.allclose(net(img, mask)[1], torch.full_like(std, 0.05))
+
+
+def test_mask_zeroes_input():
+    torch.manual_seed(0)
+    net = FCDenseNet(**TINY).eval()
+    img = torch.rand(1, 3, 32, 40)
+    mask = torch.zeros(1, 1, 32, 40, dtype=torch.bool)
+    mask[..., 8:24, 10:30] = True
+    other = torch.where(mask, img, torch.rand_like(img))
+    torch.testing.assert_close(net(img, mask)[0], net(other, mask)[0])
+
+
+def test_size_not_divisible_raises_clear_message():
+    net = FCDenseNet(**TINY)
+    with pytest.raises(ValueError, match="divisible by 2\\*\\*levels = 8"):
+        net(torch.rand(1, 3, 60, 80))
+
+
+def test_bad_configuration():
+    with pytest.raises(ValueError, match="std_floor"):
+        FCDenseNet(**{**TINY, "std_floor": 0.0})
+    with pytest.raises(ValueError, match="same non-zero length"):
+        FCDenseNet(**{**TINY, "up_layers": (1, 1)})
+
+
+def test_gradients_flow_to_all_parameters():
+    torch.manual_seed(0)
+    net = FCDenseNet(**TINY)
+    d, s = net(torch.rand(2, 3, 32, 40))
+    (d.mean() + s.mean()).backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in net.parameters())

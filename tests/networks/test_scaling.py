@@ -1,0 +1,49 @@
+"""Depth Scaling Layer: analytic scale, frames without points, gradcheck."""
+
+import torch
+
+from endorecon.networks import DepthScalingLayer, depth_scale, scale_depth
+
+
+def test_analytic_scale_recovered():
+    g = torch.Generator().manual_seed(0)
+    depth = torch.rand(3, 1, 8, 10, generator=g, dtype=torch.float64) + 0.5
+    std = torch.full_like(depth, 0.1)
+    true_scale = torch.tensor([2.0, 0.25, 7.5], dtype=torch.float64)
+    sparse = depth * true_scale.view(-1, 1, 1, 1)
+    valid = torch.rand(3, 1, 8, 10, generator=g) < 0.2
+    valid[:, 0, 0, 0] = True
+    sparse = torch.where(valid, sparse, torch.full_like(sparse, float("nan")))  # unused pixels may be NaN
+    d, s, scale, has = scale_depth(depth, std, sparse, valid)
+    torch.testing.assert_close(scale, true_scale)
+    assert has.all()
+    torch.testing.assert_close(d[valid], sparse[valid])
+    torch.testing.assert_close(s, std * true_scale.view(-1, 1, 1, 1))
+
+
+def test_ratio_of_sums_definition():
+    depth = torch.tensor([1.0, 3.0]).view(1, 1, 1, 2)
+    sparse = torch.tensor([2.0, 2.0]).view(1, 1, 1, 2)
+    scale, _ = depth_scale(depth, sparse, torch.ones(1, 1, 1, 2, dtype=torch.bool))
+    assert scale.item() == 1.0  # (2+2)/(1+3), not the mean ratio (2 + 2/3)/2
+
+
+def test_frames_without_points_keep_scale_one():
+    depth = torch.full((2, 1, 4, 4), 2.0)
+    sparse = torch.full_like(depth, 6.0)
+    valid = torch.zeros(2, 1, 4, 4, dtype=torch.bool)
+    valid[0, 0, 1, 1] = True
+    d, s, scale, has = DepthScalingLayer()(depth, torch.ones_like(depth), sparse, valid)
+    assert scale.tolist() == [3.0, 1.0] and has.tolist() == [True, False]
+    assert (d[1] == 2.0).all() and (s[1] == 1.0).all()
+
+
+def test_gradcheck():
+    g = torch.Generator().manual_seed(1)
+    depth = (torch.rand(2, 1, 4, 5, generator=g, dtype=torch.float64) + 0.5).requires_grad_()
+    std = (torch.rand(2, 1, 4, 5, generator=g, dtype=torch.float64) + 0.1).requires_grad_()
+    sparse = (torch.rand(2, 1, 4, 5, generator=g, dtype=torch.float64) + 1).requires_grad_()
+    valid = torch.rand(2, 1, 4, 5, generator=g) < 0.5
+    valid[:, 0, 0, 0] = True
+    fn = lambda d, s, sp: scale_depth(d, s, sp, valid)[:2]  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (depth, std, sparse))
