@@ -87,20 +87,10 @@ class BootstrapCallback(L.Callback):
 
     def _evaluate(self, seq, sdir: Path) -> dict | None:
         """The held-out mesh against the patient's CT (evaluation is the only reader of ground truth)."""
-        from endorecon.data.dataset import load_ground_truth
         from endorecon.data.sequence import read_poses_txt
-        from endorecon.evaluation import evaluate_mesh
-        from endorecon.geometry import camera_centers
 
-        gt = load_ground_truth(self.info.root, seq.patient, seq.name.split("/")[-1])
-        if gt.mesh_path is None:
-            return None
         _, poses = read_poses_txt(sdir / "poses.txt")
-        ok = np.isfinite(poses).all(axis=(1, 2))
-        centers = camera_centers(torch.from_numpy(poses[ok])).numpy()
-        gt_centers = camera_centers(torch.from_numpy(gt.cam_from_world[ok])).numpy()
-        return evaluate_mesh(sdir / "mesh.ply", gt.mesh_path, self.it_dir / "evaluation",
-                             cam_centers=centers, gt_cam_centers=gt_centers)
+        return pipeline.evaluate_against_ct(self.info.root, seq, sdir / "mesh.ply", poses, self.it_dir / "evaluation")
 
     def _log_tensorboard(self, trainer, summaries, evaluation) -> None:
         exp = getattr(trainer.logger, "experiment", None) if trainer.logger else None

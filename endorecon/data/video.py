@@ -1,8 +1,16 @@
-"""Inputs of the application phase: frames from a video file, intrinsics files, mask estimation."""
+"""Inputs of the application phase: frames from a video file, intrinsics files, mask estimation, texture check.
+
+* :func:`extract_frames` — decode a video (ffmpeg, via the ``imageio-ffmpeg`` binary) into PNG frames; a
+  truncated or unreadable file is an :class:`InputError`.
+* :func:`read_intrinsics` — K from ``camera.json`` or a plain ``fx fy cx cy`` text file.
+* :func:`estimate_mask` — the endoscope's field of view from the dark border of the frames.
+* :func:`check_texture` — refuse frames with nothing for SfM to match (black, constant), before SfM runs.
+"""
 
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -11,58 +19,99 @@ from endorecon.data.sequence import list_frames, read_camera_json
 from endorecon.utils.errors import InputError
 from endorecon.utils.io import atomic_dir, atomic_write_text
 
+log = logging.getLogger(__name__)
+
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".mpg", ".mpeg", ".m4v", ".wmv")
 
 
-def extract_frames(video: str | Path, out_dir: str | Path, stride: int = 1, max_frames: int | None = None,
-                   start: int = 0) -> list[Path]:
-    """Decode a video (ffmpeg via imageio) into ``out_dir/000000.png ...``; skips if already complete.
+def _decoder():
+    try:
+        import imageio_ffmpeg
+    except ImportError as e:  # an optional dependency (pyproject extra "video")
+        raise InputError("reading a video needs the imageio-ffmpeg package", fix="pip install imageio-ffmpeg, "
+                         "or extract the frames yourself and pass the folder") from e
+    return imageio_ffmpeg
 
-    A truncated or unreadable video is an :class:`InputError`; frames decoded
-    before a mid-stream error are kept only if at least two were read (and
-    the error is reported in ``out_dir/decode.json``).
+
+def extract_frames(video: str | Path, out_dir: str | Path, stride: int = 1, max_frames: int | None = None,
+                   start: int = 0, allow_truncated: bool = False) -> list[Path]:
+    """Decode a video into ``out_dir/000000.png ...``; skipped if ``out_dir/decode.json`` exists (complete).
+
+    Frames ``start, start + stride, ...`` are kept, at most ``max_frames``.  The
+    folder appears only when complete (atomic).  Errors (:class:`InputError`):
+    a missing or undecodable file; fewer than 3 frames; a *truncated* file —
+    fewer frames decoded than its header's duration x fps announces — unless
+    ``allow_truncated`` (then the decoded frames are used and ``decode.json``
+    says so).
     """
-    import imageio.v3 as iio
     from PIL import Image
+    from rich.progress import Progress
 
     video, out_dir = Path(video), Path(out_dir)
     if (out_dir / "decode.json").is_file():
         return list_frames(out_dir)
     if not video.is_file():
         raise InputError("video file does not exist", video, "pass input=<video file or frames folder>")
-    n_read, error = 0, None
+    if stride < 1 or start < 0 or (max_frames is not None and max_frames < 1):
+        raise InputError(f"bad frame selection stride={stride} start={start} max_frames={max_frames}",
+                         fix="video.stride >= 1, video.start >= 0, video.max_frames >= 1 or null")
+    ffmpeg = _decoder()
+    fix = "check the file (ffprobe), re-encode it (ffmpeg -i in.mp4 -c:v libx264 out.mp4), or extract the frames " \
+          "yourself and pass the folder"
+    decoded = kept = 0
+    error = None
     with atomic_dir(out_dir) as tmp:
         try:
-            for k, frame in enumerate(iio.imiter(video, plugin="pyav") if _has_pyav() else iio.imiter(video)):
-                if k < start or (k - start) % stride:
-                    continue
-                arr = np.asarray(frame)
-                if arr.ndim == 2:
-                    arr = np.stack([arr] * 3, -1)
-                Image.fromarray(arr[..., :3]).save(tmp / f"{n_read:06d}.png")
-                n_read += 1
-                if max_frames is not None and n_read >= max_frames:
-                    break
-        except Exception as e:  # decoders raise many kinds; what matters is what was read
-            error = f"{type(e).__name__}: {e}"
-        if n_read < 2:
-            raise InputError(
-                f"could not decode the video ({error or 'fewer than 2 frames'})",
-                video,
-                "check the file (ffprobe), or extract frames yourself and pass the folder",
-            )
-        atomic_write_text(tmp / "decode.json", json.dumps(dict(video=str(video), frames=n_read, stride=stride,
-                                                              error=error)) + "\n")
+            gen = ffmpeg.read_frames(str(video), pix_fmt="rgb24")
+            meta = next(gen)
+        except Exception as e:  # ffmpeg reports unreadable files as OSError/RuntimeError/StopIteration
+            raise InputError(f"cannot decode the video ({_short(e)})", video, fix) from e
+        w, h = (int(v) for v in meta["size"])
+        fps, duration = float(meta.get("fps") or 0), float(meta.get("duration") or 0)
+        expected = int(round(fps * duration)) if fps > 0 and duration > 0 else None
+        stopped_early = False
+        with Progress(transient=True) as bar:
+            task = bar.add_task(f"decode {video.name}", total=expected)
+            try:
+                for raw in gen:
+                    if len(raw) != w * h * 3:
+                        raise OSError(f"frame {decoded} has {len(raw)} bytes, expected {w * h * 3}")
+                    if decoded >= start and (decoded - start) % stride == 0:
+                        arr = np.frombuffer(raw, np.uint8).reshape(h, w, 3)
+                        Image.fromarray(arr).save(tmp / f"{kept:06d}.png")
+                        kept += 1
+                    decoded += 1
+                    bar.advance(task)
+                    if max_frames is not None and kept >= max_frames:
+                        stopped_early = True
+                        break
+            except Exception as e:  # a decoder error mid-stream: judged below with what was read
+                error = _short(e)
+            finally:
+                gen.close()
+        # Truncation: ffmpeg stops quietly at the end of the data; the header still announces the full length.
+        # (Containers round duration x fps: allow 5 % + 1 frame of slack.)
+        truncated = not stopped_early and (error is not None or
+                                           (expected is not None and decoded < 0.95 * expected - 1))
+        what = f"decoded {decoded} frame(s)" + (f" of the {expected} its header announces" if expected else "") \
+            + (f"; decoder error: {error}" if error else "")
+        if kept < 3:
+            raise InputError(f"video gave only {kept} usable frame(s), SfM needs at least 3 ({what})", video, fix)
+        if truncated and not allow_truncated:
+            raise InputError(f"video looks truncated: {what}", video,
+                             f"{fix}; or pass video.allow_truncated=true to reconstruct the {kept} decoded frames")
+        if truncated:
+            log.warning("%s: truncated video, using the %d decoded frames (%s)", video, kept, what)
+        atomic_write_text(tmp / "decode.json", json.dumps(dict(
+            video=str(video), size=[h, w], fps=fps, duration_s=duration, expected=expected, decoded=decoded,
+            frames=kept, start=start, stride=stride, truncated=truncated, error=error), indent=2) + "\n")
     return list_frames(out_dir)
 
 
-def _has_pyav() -> bool:
-    try:
-        import av  # noqa: F401
-
-        return True
-    except ImportError:
-        return False
+def _short(e: BaseException) -> str:
+    # ffmpeg's messages carry the whole build banner: keep the first meaningful line
+    msg = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {msg[0][:200] if msg else ''}"
 
 
 def read_intrinsics(path: str | Path, pixel_origin: str = "corner") -> np.ndarray:
@@ -73,28 +122,46 @@ def read_intrinsics(path: str | Path, pixel_origin: str = "corner") -> np.ndarra
     Returns K (3, 3) in the pixel-centre convention.
     """
     path = Path(path)
+    if pixel_origin not in ("corner", "center"):
+        raise InputError(f"intrinsics_pixel_origin must be 'corner' or 'center', got {pixel_origin!r}")
+    if not path.is_file():
+        raise InputError("intrinsics file does not exist", path,
+                         "pass intrinsics=<camera.json or a text file 'fx fy cx cy'>")
     if path.suffix == ".json":
         return read_camera_json(path)[0]
-    if not path.is_file():
-        raise InputError("intrinsics file does not exist", path, "pass intrinsics=<camera.json or fx fy cx cy file>")
     try:
         first = next(ln for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#"))
-        fx, fy, cx, cy = (float(v) for v in first.replace(",", " ").split()[:4])
-    except (StopIteration, ValueError) as e:
-        raise InputError("expected a first line 'fx fy cx cy'", path) from e
+        vals = [float(v) for v in first.replace(",", " ").split()]
+        if len(vals) < 4:
+            raise ValueError(f"{len(vals)} numbers")
+        fx, fy, cx, cy = vals[:4]
+    except (StopIteration, ValueError, UnicodeDecodeError) as e:
+        raise InputError(f"expected a first line 'fx fy cx cy' ({e})", path, "write fx fy cx cy in pixels") from e
     shift = 0.5 if pixel_origin == "corner" else 0.0
     K = np.array([[fx, 0, cx - shift], [0, fy, cy - shift], [0, 0, 1]], dtype=np.float64)
     if not np.isfinite(K).all() or fx <= 0 or fy <= 0:
-        raise InputError("intrinsics are not finite and positive", path)
+        raise InputError("intrinsics are not finite and positive", path, "write fx fy cx cy in pixels")
     return K
+
+
+def check_intrinsics_fit(K: np.ndarray, height: int, width: int, path: str | Path | None = None) -> None:
+    """The principal point must lie inside the frames: a K for another resolution is the usual mistake."""
+    cx, cy = K[0, 2], K[1, 2]
+    if not (0 <= cx < width and 0 <= cy < height):
+        raise InputError(f"principal point ({cx:.1f}, {cy:.1f}) is outside the {width}x{height} frames: the "
+                         "intrinsics are for another resolution", path,
+                         f"give fx fy cx cy in pixels of the {width}x{height} frames")
 
 
 def estimate_mask(frames: list[np.ndarray], threshold: float = 0.06, erode: int = 3) -> np.ndarray:
     """Valid-pixel mask from the dark border of endoscopic frames.
 
-    A pixel is valid when its brightness over the frames (90th percentile) is
-    above ``threshold`` (grey in [0, 1]); the largest connected region is kept,
-    its holes filled, and the rim eroded by ``erode`` pixels.
+    Args:
+        frames: a few (H, W, 3) uint8 frames.
+    Returns:
+        (H, W) bool: pixels whose brightness over the frames (90th percentile,
+        grey in [0, 1]) is above ``threshold``; the largest connected region,
+        holes filled, rim eroded by ``erode`` pixels.
     """
     from scipy import ndimage
 
@@ -104,12 +171,43 @@ def estimate_mask(frames: list[np.ndarray], threshold: float = 0.06, erode: int 
     bright = np.percentile(grey, 90, axis=0) > threshold
     lab, n = ndimage.label(bright)
     if n == 0:
-        raise InputError("the frames are black: no valid pixel found for a mask", fix="pass mask=<png> (white = valid)")
+        raise InputError("the frames are black: no valid pixel for a mask (and nothing for SfM to match)",
+                         fix="check the video, or pass mask=<png> (white = valid)")
     sizes = ndimage.sum(bright, lab, index=np.arange(1, n + 1))
     mask = ndimage.binary_fill_holes(lab == (1 + int(np.argmax(sizes))))
     if erode > 0:
-        mask = ndimage.binary_erosion(mask, iterations=erode)
+        mask = ndimage.binary_erosion(mask, iterations=erode, border_value=1)
     if mask.mean() < 0.05:
         raise InputError(f"estimated mask covers only {mask.mean():.1%} of the image",
                          fix="pass mask=<png> (white = valid)")
     return mask
+
+
+def texture_level(frame: np.ndarray, mask: np.ndarray) -> float:
+    """Mean grey-level gradient magnitude (in 1/255 units per pixel) inside ``mask``.
+
+    frame: (H, W, 3) uint8; mask: (H, W) bool.
+    """
+    g = frame.astype(np.float32).mean(-1)
+    gx = np.abs(np.diff(g, axis=1))[:-1, :]
+    gy = np.abs(np.diff(g, axis=0))[:, :-1]
+    m = mask[:-1, :-1] & mask[1:, :-1] & mask[:-1, 1:]
+    if not m.any():
+        return 0.0
+    return float((gx + gy)[m].mean())
+
+
+def check_texture(frames: list[np.ndarray], mask: np.ndarray, min_level: float = 0.5,
+                  path: str | Path | None = None) -> float:
+    """Raise if the frames show no texture (black, constant or blank frames: SfM would find nothing).
+
+    Returns the median :func:`texture_level` over ``frames``.  ``min_level`` is in
+    grey levels per pixel: rendered phantoms and real endoscopy sit far above it.
+    """
+    levels = [texture_level(f, mask) for f in frames]
+    med = float(np.median(levels)) if levels else 0.0
+    if med < min_level:
+        raise InputError(f"the frames show no texture (mean gradient {med:.2f} grey levels/pixel < {min_level}): "
+                         "black, constant or blank frames give SfM nothing to match", path,
+                         "check the video/frames (and the mask), or lower input_checks.min_texture")
+    return med

@@ -54,7 +54,10 @@ def render_scalar_views(
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     centre = 0.5 * (v.min(0) + v.max(0))
-    radius = float(np.linalg.norm(v - centre, axis=1).max())
+    radius = float(np.linalg.norm(v - centre, axis=1).max()) if len(v) else 0.0
+    if not np.isfinite(radius) or radius <= 1e-9 * max(1.0, float(np.abs(centre).max())):
+        # A degenerate (collapsed) mesh: ray casting it can take minutes; show nothing instead.
+        return [np.ones((height, width, 3)) for _ in range(n_views)]
     dist = 1.05 * radius / np.sin(np.deg2rad(fov_deg) / 2)
     colormap = plt.get_cmap(cmap)
     images = []
@@ -132,3 +135,142 @@ def _save(fig, path: str | Path) -> Path:
         fig.savefig(tmp, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return Path(path)
+
+
+# ------------------------------------------------------------------ mesh preview
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """cam_from_world (4, 4) of a camera at ``eye`` looking at ``target`` (x right, y down, z forward), with
+    world direction ``up`` appearing upwards in the image."""
+    z = np.asarray(target, np.float64) - np.asarray(eye, np.float64)
+    z /= np.linalg.norm(z)
+    u = np.asarray(up, np.float64)
+    u = u - (u @ z) * z
+    if np.linalg.norm(u) < 1e-9:  # up parallel to the view: any perpendicular will do
+        u = np.eye(3)[int(np.argmin(np.abs(z)))]
+        u = u - (u @ z) * z
+    y = -u / np.linalg.norm(u)
+    x = np.cross(y, z)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z])
+    T[:3, 3] = -T[:3, :3] @ np.asarray(eye, np.float64)
+    return T
+
+
+def _pinhole(fov_deg: float, height: int, width: int) -> np.ndarray:
+    f = 0.5 * width / np.tan(np.deg2rad(fov_deg) / 2)
+    return np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]], np.float64)
+
+
+def shade_view(renderer, vertex_rgb: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, height: int,
+               width: int, ambient: float = 0.25) -> np.ndarray:
+    """One view (height, width, 3) float in [0, 1]: vertex colours (V, 3) in [0, 1] interpolated with the hit's
+    barycentrics, Lambert-shaded with a headlight (two-sided: |n·ray|); white where nothing is hit.
+
+    renderer: a :class:`endorecon.rendering.raycast.MeshRenderer`; K (3, 3) pixel-centre; cam_from_world (4, 4).
+    """
+    r = renderer.render(K, cam_from_world, height, width)
+    hit = r["hit"]
+    img = np.ones((height, width, 3))
+    if not hit.any():
+        return img
+    tri = renderer.triangles[r["triangle_ids"][hit]]
+    uv = r["uvs"][hit].astype(np.float64)
+    c = vertex_rgb[tri]  # (K, 3 corners, 3)
+    rgb = (1 - uv.sum(1, keepdims=True)) * c[:, 0] + uv[:, :1] * c[:, 1] + uv[:, 1:] * c[:, 2]
+    eye = -cam_from_world[:3, :3].T @ cam_from_world[:3, 3]
+    ray = r["points_world"][hit] - eye
+    ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
+    lambert = np.abs((r["normals_world"][hit] * ray).sum(1))
+    img[hit] = np.clip(rgb * (ambient + (1 - ambient) * lambert)[:, None], 0, 1)
+    return img
+
+
+def _preview_cameras(vertices: np.ndarray, cam_from_world: np.ndarray | None, fov_deg: float):
+    """(title, cam_from_world) of the preview views: an endoscope-like view behind the middle registered camera
+    (if poses are given) and an overview from outside along the mesh's thinnest axis."""
+    centre = 0.5 * (vertices.min(0) + vertices.max(0))
+    radius = float(np.linalg.norm(vertices - centre, axis=1).max())
+    _, _, Vt = np.linalg.svd(vertices - vertices.mean(0), full_matrices=False)
+    views = []
+    if cam_from_world is not None:
+        ok = np.flatnonzero(np.isfinite(cam_from_world).all(axis=(1, 2)))
+        if len(ok):
+            T = cam_from_world[ok[len(ok) // 2]]
+            R, t = T[:3, :3], T[:3, 3]
+            eye, fwd, down = -R.T @ t, R[2], R[1]
+            depth = np.median(np.linalg.norm(vertices - eye, axis=1))
+            eye_back = eye - 0.75 * depth * fwd  # step back so more than the camera's own view fits
+            views.append(("endoscope view (stepped back)", look_at(eye_back, eye_back + fwd, -down)))
+            # the overview looks from the side the cameras are on (inside the cavity)
+            side = Vt[2] if (eye - centre) @ Vt[2] >= 0 else -Vt[2]
+            dist = 1.05 * radius / np.sin(np.deg2rad(fov_deg) / 2)
+            views.append(("overview", look_at(centre + dist * side, centre, Vt[0])))
+            return views
+    dist = 1.05 * radius / np.sin(np.deg2rad(fov_deg) / 2)
+    views.append(("overview", look_at(centre - dist * Vt[2], centre, Vt[0])))
+    views.append(("overview (other side)", look_at(centre + dist * Vt[2], centre, Vt[0])))
+    return views
+
+
+def render_mesh_preview(mesh_path: str | Path, png_path: str | Path, K: np.ndarray | None = None,
+                        cam_from_world: np.ndarray | None = None, height: int | None = None,
+                        width: int | None = None, size: tuple[int, int] = (300, 380), fov_deg: float = 60.0,
+                        show_std: bool = True, title: str | None = None) -> Path:
+    """PNG of a (fused) mesh: shaded vertex colours from two viewpoints, plus its per-vertex std if it has one.
+
+    Args:
+        mesh_path: PLY with vertex colours (grey if none); a ``std`` vertex property (endorecon's fusion) adds a
+            std panel.
+        png_path: output PNG (written atomically).
+        K, cam_from_world (N, 4, 4), height, width: the cameras that saw the mesh (optional); with them the first
+            view is an endoscope-like view from behind the middle camera, else two outside views.
+        size: (height, width) of each rendered view.
+    """
+    from endorecon.fusion.ply import read_mesh_ply
+    from endorecon.rendering.raycast import MeshRenderer
+
+    mesh_path = Path(mesh_path)
+    try:
+        tm = read_mesh_ply(mesh_path)
+        v = tm.vertex
+        verts = v.positions.numpy().astype(np.float64)
+        tris = tm.triangle.indices.numpy().astype(np.int64)
+        rgb = v.colors.numpy().astype(np.float64) if "colors" in v else None
+        std = v["std"].numpy().reshape(-1).astype(np.float64) if "std" in v else None
+    except Exception:  # not one of endorecon's binary PLYs: any mesh Open3D reads
+        m = o3d.io.read_triangle_mesh(str(mesh_path))
+        verts, tris = np.asarray(m.vertices, np.float64), np.asarray(m.triangles, np.int64)
+        rgb = np.asarray(m.vertex_colors, np.float64) if m.has_vertex_colors() else None
+        std = None
+    if len(tris) == 0:
+        from endorecon.utils.errors import InputError
+
+        raise InputError("mesh has no triangles: nothing to preview", mesh_path, "check the fusion stage's log")
+    if rgb is None or len(rgb) != len(verts):
+        rgb = np.full((len(verts), 3), 0.8)
+    renderer = MeshRenderer((verts, tris))
+    H, W = size
+    Kp = _pinhole(fov_deg, H, W)
+    views = _preview_cameras(verts, cam_from_world, fov_deg)
+    panels = [(name, shade_view(renderer, rgb, Kp, T, H, W)) for name, T in views]
+    std_img = None
+    if show_std and std is not None and np.isfinite(std).any():
+        lo, hi = np.nanpercentile(std, [2, 98])
+        hi = max(hi, lo + 1e-12)
+        std_rgb = plt.get_cmap("magma")(np.clip((std - lo) / (hi - lo), 0, 1))[:, :3]
+        std_img = shade_view(renderer, std_rgb, Kp, views[-1][1], H, W, ambient=0.5)
+    n = len(panels) + (std_img is not None)
+    fig, axes = plt.subplots(1, n, figsize=(3.4 * n + 0.6, 3.4 * H / W + 0.7), squeeze=False)
+    for ax, (name, img) in zip(axes[0], panels):
+        ax.imshow(img)
+        ax.set_title(name, fontsize=9)
+        ax.set_axis_off()
+    if std_img is not None:
+        ax = axes[0, -1]
+        ax.imshow(std_img)
+        ax.set_title("per-vertex std (overview)", fontsize=9)
+        ax.set_axis_off()
+        sm = plt.cm.ScalarMappable(cmap="magma", norm=matplotlib.colors.Normalize(lo, hi))
+        fig.colorbar(sm, ax=ax, fraction=0.046, pad=0.02)
+    fig.suptitle(title or f"{mesh_path.name}: {len(verts)} vertices, {len(tris)} triangles", fontsize=10)
+    return _save(fig, png_path)

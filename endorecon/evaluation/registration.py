@@ -244,6 +244,8 @@ def icp_sim3(
     damping: float = 1e-6,
     tol: float = 1e-5,
     min_threshold_frac: float = 1e-3,
+    scale_slack: float | None = None,
+    max_scale_step: float = 0.05,
 ) -> RegistrationResult:
     """Point-to-plane ICP with scale against a mesh (see module docstring).
 
@@ -260,10 +262,15 @@ def icp_sim3(
             tolerance only burns iterations; a zero-residual fit converges quadratically well past it.
         min_threshold_frac: floor of the outlier threshold, as a fraction of the RMS radius of
             the registered points (without it a perfect fit would reject half its points as noise).
+        scale_slack: keep the scale within [s0 / slack, s0 · slack] of the initial scale s0.  A free
+            scale has a degenerate optimum: shrinking the reconstruction onto a patch of the surface
+            drives every distance (and, with outlier rejection, the inlier set) to zero.
+        max_scale_step: bound on |log scale change| per iteration, for the same reason.
     """
     if src_points.ndim != 2 or src_points.shape[1] != 3 or len(src_points) < 7:
         raise ValueError(f"src_points must be (N>=7, 3), got {tuple(src_points.shape)}")
     T = init
+    s_lo, s_hi = (init.scale / scale_slack, init.scale * scale_slack) if scale_slack else (0.0, np.inf)
     converged = False
     it = 0
     inl = np.ones(len(src_points), bool)
@@ -283,6 +290,8 @@ def icp_sim3(
         sigma, w, v, scale_ref = _gauss_newton_step(x[inl], q[inl], n[inl], point_weight, damping)
         c = x[inl].mean(0)
         dR = so3_exp(torch.from_numpy(w)[None])[0].numpy()
+        sigma = float(np.clip(sigma, -max_scale_step, max_scale_step))
+        sigma = float(np.clip(sigma, np.log(s_lo / T.scale) if s_lo > 0 else -np.inf, np.log(s_hi / T.scale)))
         es = float(np.exp(sigma))
         # x' = c + e^σ dR (x − c) + v, composed onto x = sR p + t.
         T = Sim3(es * T.scale, dR @ T.R, es * dR @ (T.t - c) + c + v)
@@ -362,6 +371,8 @@ def register(
         if cam_centers is None or gt_cam_centers is None:
             raise ValueError("init='trajectory' needs cam_centers and gt_cam_centers")
         cands = trajectory_candidates(cam_centers, gt_cam_centers, cam_rotations, gt_cam_rotations)
+        # The trajectory fixes the scale well: ICP may refine it by 25 % at most.
+        icp_kwargs = {"scale_slack": 1.25, **icp_kwargs}
         return _best_of(src_points, surface, [(T, None) for T in cands], "trajectory", seed, select_points, icp_kwargs)
     if init == "identity":
         return icp_sim3(src_points, surface, Sim3.identity(), **icp_kwargs)
@@ -371,6 +382,7 @@ def register(
         raise ValueError("init='global' needs ref_points")
     fpfh_src = src_points if global_src_points is None else global_src_points
     candidates = global_registration(fpfh_src, ref_points, seed, global_voxel_frac, global_trials)
+    icp_kwargs = {"scale_slack": 2.0, **icp_kwargs}
     return _best_of(src_points, surface, candidates, "global", seed, select_points, icp_kwargs)
 
 

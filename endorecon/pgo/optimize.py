@@ -15,6 +15,14 @@ edges.  Depths and stds are the network's, detached: only poses move.  With
 ``normalize_depth`` depths, stds and translations are divided by the median
 depth while optimising, so ``lr`` is in median-depth units whatever the
 sequence's units.  Unregistered frames (NaN pose) take no part and stay NaN.
+
+The default optimiser is L-BFGS (strong Wolfe line search), restarted with a
+halved step when a line search stalls.  The objective is first-order only and
+the sparse-flow NLL is sharp (flow std of a fraction of a pixel), so
+rotation/translation trade-offs along the optical axis converge slowly: on the
+12-frame test scene 60 iterations cut the pose error ~5x with the reference
+frame exact, but only ~1.7x/1.25x (rotation/translation) when the reference
+frame itself carries the same noise.
 """
 
 from __future__ import annotations
@@ -220,11 +228,14 @@ def optimize_poses(
 
     with torch.no_grad():
         loss_before = objective(False)
+    def make_lbfgs(step):
+        return torch.optim.LBFGS([xi], lr=step, max_iter=1, history_size=20, line_search_fn="strong_wolfe")
+
     if opt_name == "adam":
         opt = torch.optim.Adam([xi], lr=lr)
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, iterations), eta_min=0.05 * lr)
     else:
-        opt = torch.optim.LBFGS([xi], lr=lr, max_iter=1, history_size=20, line_search_fn="strong_wolfe")
+        opt = make_lbfgs(lr)
         sched = None
 
     def closure():
@@ -237,6 +248,10 @@ def optimize_poses(
         task = progress.add_task("PGO", total=iterations, loss=loss_before)
         for _ in range(iterations):
             value = float(opt.step(closure)) if opt_name == "lbfgs" else _adam_step(opt, closure)
+            if opt_name == "lbfgs" and history and abs(value - history[-1]) <= 1e-9 * max(1.0, abs(value)):
+                # A failed line search leaves L-BFGS stuck at one point: restart it with a smaller step.
+                lr *= 0.5
+                opt = make_lbfgs(lr)
             if sched is not None:
                 sched.step()
             history.append(value)
@@ -251,11 +266,13 @@ def optimize_poses(
         c0 = -(T0[:, :3, :3].transpose(1, 2) @ T0[:, :3, 3:])[..., 0]
         c1 = -(T_n[:, :3, :3].transpose(1, 2) @ T_n[:, :3, 3:])[..., 0]
         trans = (c1 - c0).norm(dim=1) * scale
-        T = T_n.clone()
-        T[:, :3, 3] *= scale
+        # Apply the update (translation back in input units) to the input poses in their own precision,
+        # so that the fixed frame is returned bit-exact.
+        U = update.to(device=cam_from_world_init.device, dtype=cam_from_world_init.dtype)
+        U[:, :3, 3] *= scale
         T_out = cam_from_world_init.clone()
         reg_t = torch.tensor(registered, device=T_out.device)
-        T_out[reg_t] = T[reg_t].to(device=T_out.device, dtype=T_out.dtype)
+        T_out[reg_t] = U[reg_t] @ cam_from_world_init[reg_t]
         nan = torch.tensor(float("nan"), dtype=dt, device=dev)
         rot = torch.where(reg_t.to(dev), rot, nan)
         trans = torch.where(reg_t.to(dev), trans, nan)

@@ -16,7 +16,7 @@ CONF = Path(__file__).resolve().parents[2] / "conf" / "phantom.yaml"
 # used when the package is installed without the conf/ folder next to it
 DEFAULTS = dict(
     out=None, patients=6, sequences=1, frames=60, height=256, width=320, seed=0, mesh=None, waypoints=None,
-    fov_deg=100.0, step_mm=0.5, motion_blur=0, jpeg_quality=92,
+    fov_deg=100.0, step_mm=0.35, motion_blur=0, jpeg_quality=92,
 )
 
 

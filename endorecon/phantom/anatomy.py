@@ -107,11 +107,13 @@ def make_anatomy(seed: int, length_mm: float = 100.0, ds_mm: float = 0.4, n_thet
         wobble = 0.15 * _smooth_series(rng, s, (10, 30), 2)  # the fold meanders
         dth = np.angle(np.exp(1j * (theta[None] - th0 - wobble[:, None])))
         rho *= 1 - (amp * ramp)[:, None] * np.exp(-0.5 * (dth / width) ** 2)
-    # small longitudinal ridges
+    # small longitudinal ridges, flattening out towards the closed ends (ridges that converge on the
+    # end dome would shade as a star)
+    ridge_env = _smoothstep((np.minimum(s, length_mm - s) - 8.0) / 12.0)
     for _ in range(3):
         k = int(rng.integers(5, 11))
         phase = rng.uniform(0, 2 * np.pi) + 0.5 * _smooth_series(rng, s, (20, 60), 2)
-        rho *= 1 + 0.025 * np.cos(k * theta[None] + phase[:, None])
+        rho *= 1 + 0.015 * ridge_env[:, None] * np.cos(k * theta[None] + phase[:, None])
     # bumps: Gaussian blobs in (s, arc length) of 1-4 mm
     arc = theta[None] * rho.mean(axis=1, keepdims=True)
     circ = 2 * np.pi * rho.mean(axis=1, keepdims=True)

@@ -3,8 +3,10 @@
 :func:`endoscope_camera` gives pinhole intrinsics (pixel-centre convention) and
 the circular valid-pixel mask.  :func:`plan_trajectory` moves a camera along a
 centreline: forward with a slow back-and-forth, a lateral drift kept within a
-fraction of the local clearance, small yaw/pitch around the passage direction
-and a slow roll, all smooth (sums of low-frequency sinusoids).
+fraction of the local clearance, small yaw/pitch around the (smoothed) passage
+direction and a slow roll, all smooth (sums of low-frequency sinusoids) and at
+video-rate speeds: ~0.35 mm forward and a few tenths of a degree of rotation per
+frame, as a hand-held scope moves (what SfM on real video sees).
 :func:`estimate_centreline` finds a path of large clearance through any closed
 mesh (the given-mesh phantom): Dijkstra over interior voxels, weighted by
 inverse clearance, between the two far ends of the cavity's principal axis.
@@ -59,9 +61,10 @@ def plan_trajectory(
     clearance: np.ndarray,
     n_frames: int,
     rng: np.random.Generator,
-    step_mm: float = 0.5,
+    step_mm: float = 0.35,
     margin_mm: float = 20.0,
     times: np.ndarray | None = None,
+    view_smoothing_mm: float = 12.0,
 ) -> np.ndarray:
     """Smooth hand-held-like camera poses along a centreline.
 
@@ -75,6 +78,8 @@ def plan_trajectory(
         times: optional (T,) times in frame units at which to evaluate the poses (default
             ``arange(n_frames)``; fractional times around a frame give motion-blur sub-poses; the
             trajectory itself depends only on ``rng`` and ``n_frames``, not on ``times``).
+        view_smoothing_mm: the scope looks along the passage direction averaged over this arc length
+            (Gaussian sigma), so bends of the passage turn the view gradually.
     Returns:
         cam_from_world (T, 4, 4) float64.
     """
@@ -82,32 +87,36 @@ def plan_trajectory(
     seg = np.linalg.norm(np.diff(c, axis=0), axis=1)
     s_c = np.concatenate([[0.0], np.cumsum(seg)])
     length = s_c[-1]
-    tan, nor, bin_ = rotation_minimising_frames(c)
+    tan, nor, bin_ = _smoothed_frames(c, s_c, view_smoothing_mm)
     usable = length - 2 * margin_mm
     if usable <= 1.0:
         raise InputError(f"centreline is only {length:.1f} mm long", fix="use a longer cavity or smaller margin_mm")
     t = np.arange(n_frames, dtype=np.float64) if times is None else np.asarray(times, dtype=np.float64)
-    # forward motion with back-and-forth (the sinusoid's peak speed exceeds the mean speed)
-    period = max(20.0, n_frames / 3)
-    amp = 1.3 * step_mm * period / (2 * np.pi)
+    # forward motion with back-and-forth: the speed step_mm * (1 + 1.15 sin) briefly goes backwards and
+    # peaks at ~2 step_mm (faster forward motion near a wall changes the view too much for SfM)
+    period = max(24.0, n_frames / 2.5)
+    amp = 1.15 * step_mm * period / (2 * np.pi)
     travel = min(step_mm * max(n_frames - 1, 1), usable - 2 * amp)
     travel = max(travel, 0.0)
     start = margin_mm + amp + rng.uniform(0, max(usable - 2 * amp - travel, 0.0))
     s = start + travel * t / max(n_frames - 1, 1) + amp * np.sin(2 * np.pi * t / period + rng.uniform(0, 2 * np.pi))
     s = np.clip(s, margin_mm, length - margin_mm)
     p = _interp_rows(s, s_c, c)
-    T_ = _interp_rows(s, s_c, tan)
+    T_ = _unit(_interp_rows(s, s_c, tan))
     N_ = _interp_rows(s, s_c, nor)
-    B_ = _interp_rows(s, s_c, bin_)
+    N_ = _unit(N_ - T_ * np.sum(N_ * T_, 1, keepdims=True))
+    B_ = np.cross(T_, N_)
     cl = np.interp(s, s_c, clearance)
-    # lateral drift within 30 % of the clearance
-    lat = 0.3 * cl[:, None] * np.stack([_series(rng, t, (25, 70)), _series(rng, t, (25, 70))], 1) / 1.5
-    lat = np.clip(lat, -0.3 * cl[:, None], 0.3 * cl[:, None])
+    # lateral drift within 25 % of the clearance, slow (a hand drifts over seconds, not frames)
+    lat = 0.25 * cl[:, None] * np.stack([_series(rng, t, (60, 160)), _series(rng, t, (60, 160))], 1) / 1.5
+    lat = np.clip(lat, -0.25 * cl[:, None], 0.25 * cl[:, None])
     pos = p + lat[:, :1] * N_ + lat[:, 1:] * B_
-    # view direction: passage direction tilted by small yaw/pitch, slow roll
-    yaw = np.deg2rad(20) * _series(rng, t, (30, 90))
-    pitch = np.deg2rad(15) * _series(rng, t, (30, 90))
-    roll = np.deg2rad(35) * _series(rng, t, (60, 200)) + rng.uniform(0, 2 * np.pi)
+    # view direction: passage direction tilted by small yaw/pitch, slow roll.  Amplitude / period
+    # keeps each at a few tenths of a degree per frame (a scope at video rate turns slowly; together
+    # with the bends of the passage ~0.3-0.8 deg/frame)
+    yaw = np.deg2rad(7) * _series(rng, t, (100, 240))
+    pitch = np.deg2rad(5) * _series(rng, t, (100, 240))
+    roll = np.deg2rad(10) * _series(rng, t, (200, 500)) + rng.uniform(0, 2 * np.pi)
     fwd = T_ + np.tan(yaw)[:, None] * N_ + np.tan(pitch)[:, None] * B_
     fwd /= np.linalg.norm(fwd, axis=1, keepdims=True)
     up0 = B_ - fwd * np.sum(B_ * fwd, 1, keepdims=True)
@@ -120,6 +129,24 @@ def plan_trajectory(
     T[:, :3, :3] = R
     T[:, :3, 3] = -np.einsum("nij,nj->ni", R, pos)
     return T
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def _smoothed_frames(c: np.ndarray, s_c: np.ndarray, sigma_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotation-minimising frames of the centreline with its tangent low-passed over ``sigma_mm`` of arc length."""
+    tan, nor, bin_ = rotation_minimising_frames(c)
+    if sigma_mm <= 0 or len(c) < 3:
+        return tan, nor, bin_
+    from scipy.ndimage import gaussian_filter1d
+
+    ds = max(float(np.median(np.diff(s_c))), 1e-9)
+    tan_s = _unit(gaussian_filter1d(tan, sigma=sigma_mm / ds, axis=0, mode="nearest"))
+    nor_s = nor - tan_s * np.sum(nor * tan_s, 1, keepdims=True)  # keep the twist-free normal, re-orthogonalised
+    nor_s = _unit(nor_s)
+    return tan_s, nor_s, np.cross(tan_s, nor_s)
 
 
 def centreline_from_waypoints(waypoints: np.ndarray, spacing_mm: float = 0.5) -> np.ndarray:

@@ -69,9 +69,10 @@ def prepare_sequences(cfg: DictConfig, sfm_seqs: list[Sequence], prev_dir: Path 
 def run(cfg: DictConfig) -> float | None:
     """Run (or resume) bootstrapping iterations 0..cfg.iteration of fold cfg.fold; returns the held-out
     patient's mean residual in mm (for sweeps), when evaluated."""
+    for key in ("fold", "iteration"):
+        if not isinstance(cfg[key], int) or cfg[key] < 0:
+            raise InputError(f"{key} must be an integer >= 0, got {cfg[key]!r}", fix=f"pass {key}=0, 1, 2 ...")
     L.seed_everything(int(cfg.seed), workers=True)
-    if int(cfg.iteration) < 0:
-        raise InputError(f"iteration must be >= 0, got {cfg.iteration}", fix="pass iteration=0, 1, 2 ...")
     info = pipeline.load_sequences(cfg)
     pipeline.check_fold(int(cfg.fold), info.patients_with_ct)
     todo = [it for it in range(int(cfg.iteration) + 1) if not is_complete(iteration_dir(cfg, it))]

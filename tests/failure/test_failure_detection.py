@@ -16,6 +16,15 @@ D = torch.float64
 BAD_POSE, BAD_DEPTH = 10, 5
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    # Two cores shared by many jobs: OpenMP spin-waiting makes 2 threads far slower than 1 here.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="module")
 def scene():
     return make_scene(n_frames=N)

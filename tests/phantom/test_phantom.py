@@ -11,7 +11,7 @@ import torch
 
 from endorecon.data.dataset import load_dataset, load_ground_truth, patients_with_ct
 from endorecon.geometry import invert_pose, project, transform_points, unproject
-from endorecon.phantom import ensure_dataset, generate
+from endorecon.phantom import VERSION, ensure_dataset, generate
 from endorecon.phantom.anatomy import make_anatomy
 from endorecon.phantom.trajectory import endoscope_camera
 from endorecon.rendering import MeshRenderer
@@ -28,7 +28,7 @@ def ds(tmp_path_factory):
 
 def test_layout_and_importers_read_back(ds):
     meta = json.loads((ds / "dataset.json").read_text())
-    assert meta["format"] == "endorecon-phantom" and meta["version"] == 1 and meta["units"] == "mm"
+    assert meta["format"] == "endorecon-phantom" and meta["version"] == VERSION and meta["units"] == "mm"
     assert (meta["height"], meta["width"], meta["seed"]) == (H, W, 3)
     assert [p["has_ct"] for p in meta["patients"]] == [True] * 4 + [False]
     assert (ds / "COMPLETE").is_file()
@@ -140,6 +140,15 @@ def test_ensure_dataset_reuses_and_bad_input(tmp_path):
     root = ensure_dataset(cfg)
     stamp = (root / "COMPLETE").stat().st_mtime_ns
     assert ensure_dataset(cfg) == root and (root / "COMPLETE").stat().st_mtime_ns == stamp
+    # a dataset drawn by an older generator, or with other motion settings, is made again
+    meta = json.loads((root / "dataset.json").read_text())
+    (root / "dataset.json").write_text(json.dumps({**meta, "generator": meta["generator"] - 1}))
+    ensure_dataset(cfg)
+    assert json.loads((root / "dataset.json").read_text()) == meta
+    stamp = (root / "COMPLETE").stat().st_mtime_ns
+    ensure_dataset({**cfg, "step_mm": 0.2})
+    assert json.loads((root / "dataset.json").read_text())["step_mm"] == 0.2
+    assert (root / "COMPLETE").stat().st_mtime_ns != stamp
     with pytest.raises(InputError):
         load_dataset(tmp_path / "missing")
     (root / "COMPLETE").unlink()
@@ -193,3 +202,75 @@ def test_motion_blur_keeps_ground_truth(tmp_path):
     np.testing.assert_array_equal(a.depth_mm, b.depth_mm)
     fa, fb = load_dataset(sharp)[0].load_frame(1), load_dataset(blur)[0].load_frame(1)
     assert np.abs(fa.astype(int) - fb.astype(int)).mean() > 0.5
+
+
+def test_contact_sheet_tiles_frames_depth_and_mask(ds, tmp_path):
+    from PIL import Image
+
+    from endorecon.phantom.contact_sheet import contact_sheet
+
+    out = contact_sheet(ds, tmp_path / "sheet.png", patients=(0, 1), frames_per_row=3)
+    im = Image.open(out)
+    # rows: 2 patients; tiles: 3 frames + 2 depth maps + mask, each padded by 2 px
+    assert im.size == (6 * (W + 4), 2 * (H + 4))
+
+
+def _rotation_deg(T: np.ndarray) -> np.ndarray:
+    R = T[:, :3, :3]
+    rel = np.einsum("nij,nkj->nik", R[1:], R[:-1])
+    return np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+
+
+def test_trajectory_moves_like_a_hand_held_scope_at_video_rate():
+    """A few tenths of a degree and mm per frame, some backward motion, smooth (SfM on video needs this)."""
+    from endorecon.phantom.trajectory import plan_trajectory
+
+    backwards = 0
+    for seed in range(4):
+        a = make_anatomy(seed)
+        T = plan_trajectory(a.centreline, a.clearance, 60, np.random.default_rng(seed))  # default 0.35 mm/frame
+        rot = _rotation_deg(T)
+        centres = -np.einsum("nji,nj->ni", T[:, :3, :3], T[:, :3, 3])
+        fwd = np.einsum("ni,ni->n", np.diff(centres, axis=0), T[:-1, 2, :3])  # along the viewing axis
+        assert 0.1 < rot.mean() < 0.8 and rot.max() < 1.5, (seed, rot.mean(), rot.max())
+        step = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+        assert 0.25 < step.mean() < 0.6 and step.max() < 1.0, (seed, step.mean(), step.max())
+        assert fwd.mean() > 0.15
+        backwards += int((fwd < 0).any())
+        # smooth: the rotation rate changes little from one frame to the next
+        assert np.abs(np.diff(rot)).max() < 0.2
+    assert backwards >= 2  # back-and-forth: the scope is pulled back now and then
+
+
+def test_line_band_limiting_keeps_the_ink():
+    """A vessel thinner than a pixel is widened and dimmed so that its integrated darkness stays the same."""
+    from endorecon.phantom.appearance import _line
+
+    v = np.linspace(-3, 3, 200001)
+    dv = v[1] - v[0]
+    sharp = _line(v, 0.07, 7.0, np.full_like(v, 1e-4))
+    wide = _line(v, 0.07, 7.0, np.full_like(v, 1.0))  # 1 mm pixels: far below the line width
+    np.testing.assert_allclose(sharp.max(), 1.0, atol=1e-6)
+    assert wide.max() < 0.25  # dimmed
+    # the ink integrated over the surface: the field's value v is ~ 4.4 / 7 per mm along the surface
+    np.testing.assert_allclose(sharp.sum() * dv, wide.sum() * dv, rtol=1e-3)
+    np.testing.assert_allclose(sharp.sum() * dv, 0.07 * np.sqrt(np.pi), rtol=1e-3)
+
+
+def test_texture_has_detail_at_every_working_distance():
+    """Band-limited in screen space: sampled at its pixel footprint, the pattern has similar contrast near and far."""
+    from endorecon.phantom.appearance import SolidTexture
+
+    tex = SolidTexture(0)
+    stds = []
+    for fp in (0.03, 0.06, 0.12, 0.3):  # pixel footprint (mm) at 256x320: a wall at ~3.5 mm ... ~35 mm
+        g = np.arange(64) * fp
+        uu, vv = np.meshgrid(g, g)
+        p = np.stack([uu.ravel(), vv.ravel(), np.zeros(uu.size)], 1) + 3.0
+        alb = tex(p, np.full(len(p), fp))["albedo"]
+        lum = np.log(alb[:, 1]).reshape(64, 64)
+        # detail at the scale of a few pixels: high-pass by the 4x4 block means
+        blocks = lum.reshape(16, 4, 16, 4).mean(axis=(1, 3))
+        stds.append(float((lum - np.kron(blocks, np.ones((4, 4)))).std()))
+    assert min(stds) > 0.05, stds  # visible detail (SIFT needs it) at every distance
+    assert max(stds) / min(stds) < 2.0, stds  # and similar near and far (no far blur, no near smoothness)

@@ -1,0 +1,286 @@
+"""The reconstruct task: inputs, checkpoint checks, bad input errors, resumability, and a video end to end."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from endorecon.utils.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[2]
+H, W = 64, 80
+TINY_NET = dict(_target_="endorecon.networks.FCDenseNet", in_channels=3, first_conv_channels=8, growth_rate=4,
+                down_layers=[2, 2], bottleneck_layers=2)
+
+
+def compose(*overrides: str):
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    import endorecon.utils.resolvers  # noqa: F401
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return hydra_compose(config_name="reconstruct", overrides=list(overrides))
+
+
+def recon_cfg(run_dir: Path, *extra: str):
+    return compose(f"paths.root_dir='{run_dir.parent}'", f"paths.run_dir='{run_dir}'", "fusion.compile=false",
+                   "pgo.iterations=3", "pgo.progress=false", *extra)
+
+
+def save_ckpt(path: Path, net: dict, weights_of: dict | None = None, train_hw=None) -> Path:
+    """A checkpoint as train.py writes it (state_dict + hyper_parameters); ``weights_of`` builds the weights
+    from another net config (a mismatching checkpoint)."""
+    from endorecon.module import DepthModule
+
+    torch.manual_seed(0)
+    hp_model = dict(net=net)
+    weights = DepthModule(dict(net=weights_of or net)).state_dict()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(dict(state_dict=weights, hyper_parameters=dict(model=hp_model, loss={}),
+                    **({"pytorch-lightning_version": "2"})), path)
+    if train_hw is not None:
+        (path.parent.parent / ".hydra").mkdir(exist_ok=True)
+        (path.parent.parent / ".hydra" / "config.yaml").write_text(
+            f"data:\n  height: {train_hw[0]}\n  width: {train_hw[1]}\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory):
+    return save_ckpt(tmp_path_factory.mktemp("ckpt") / "run" / "checkpoints" / "last.ckpt", TINY_NET,
+                     train_hw=(64, 80))
+
+
+def circle_frames(folder: Path, n: int = 5, texture: bool = True) -> Path:
+    """n textured frames with a dark border (a circular field of view), as PNG files."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[:H, :W]
+    inside = (yy - 31.5) ** 2 + (xx - 39.5) ** 2 < 28**2
+    for k in range(n):
+        img = (rng.random((H, W, 3)) * 200 + 30).astype(np.uint8) if texture else np.full((H, W, 3), 120, np.uint8)
+        img[~inside] = 0
+        Image.fromarray(img).save(folder / f"{k:04d}.png")
+    return folder
+
+
+def k_file(path: Path) -> Path:
+    path.write_text("60 60 40 32\n")
+    return path
+
+
+# ------------------------------------------------------------------ units
+def test_quote_path_overrides():
+    sys.path.insert(0, str(ROOT))
+    try:
+        from reconstruct import quote_path_overrides
+    finally:
+        sys.path.remove(str(ROOT))
+    got = quote_path_overrides(["ckpt=/a/fold=0/iteration=1/last.ckpt", "input=/x/it's", "mask=null",
+                                "pgo.iterations=3", "input='/q=1'"])
+    assert got == ["ckpt='/a/fold=0/iteration=1/last.ckpt'", "input='/x/it\\'s'", "mask=null", "pgo.iterations=3",
+                   "input='/q=1'"]
+
+
+def test_network_size_keeps_area_aspect_and_stride():
+    from endorecon.tasks.reconstruct import network_size
+
+    assert network_size((256, 320), (256, 320), 32) == (256, 320)
+    h, w = network_size((540, 960), (128, 160), 32)
+    assert h % 32 == 0 and w % 32 == 0
+    assert abs(np.log((h / w) / (540 / 960))) < 0.2 and abs(np.log(h * w / (128 * 160))) < 0.3
+
+
+def test_load_module_and_training_resolution(tiny_ckpt):
+    from endorecon.tasks.reconstruct import load_module
+
+    module, hw = load_module(tiny_ckpt)
+    assert hw == (64, 80) and not module.training
+    d, s = module.predict(torch.rand(1, 3, 32, 32), torch.ones(1, 1, 32, 32, dtype=torch.bool))
+    assert d.shape == s.shape == (1, 1, 32, 32)
+
+
+def test_checkpoint_of_another_model_config(tmp_path):
+    from endorecon.tasks.reconstruct import load_module
+
+    other = dict(TINY_NET, first_conv_channels=12, down_layers=[2, 2, 2])
+    bad = save_ckpt(tmp_path / "mismatch.ckpt", TINY_NET, weights_of=other)
+    with pytest.raises(InputError) as e:
+        load_module(bad)
+    msg = str(e.value)
+    assert e.value.path == bad and "do not fit" in msg and "shape mismatch" in msg and "unexpected" in msg
+    assert "first_conv_channels=8" in msg and e.value.fix
+
+
+@pytest.mark.parametrize("kind", ["junk", "plain_state_dict", "missing"])
+def test_not_a_checkpoint(tmp_path, kind):
+    from endorecon.tasks.reconstruct import load_module
+
+    p = tmp_path / "x.ckpt"
+    if kind == "junk":
+        p.write_bytes(b"not a checkpoint at all" * 10)
+    elif kind == "plain_state_dict":
+        torch.save({"weight": torch.zeros(3)}, p)
+    with pytest.raises(InputError) as e:
+        load_module(p)
+    assert e.value.path == p and "ckpt=" in e.value.fix
+
+
+# ------------------------------------------------------------------ bad input through the task (no SfM, no model)
+def test_missing_intrinsics(tmp_path, tiny_ckpt):
+    from endorecon.tasks.reconstruct import run
+
+    frames = circle_frames(tmp_path / "frames")
+    with pytest.raises(InputError, match="no intrinsics") as e:
+        run(recon_cfg(tmp_path / "run", f"input={frames}", f"ckpt={tiny_ckpt}"))
+    assert "intrinsics=" in e.value.fix
+
+
+def test_mask_of_wrong_size(tmp_path, tiny_ckpt):
+    from endorecon.tasks.reconstruct import run
+
+    frames = circle_frames(tmp_path / "frames")
+    mask = tmp_path / "mask.png"
+    Image.fromarray(np.full((H + 1, W, 3), 255, np.uint8)).save(mask)
+    with pytest.raises(InputError, match="mask is 80x65") as e:
+        run(recon_cfg(tmp_path / "run", f"input={frames}", f"intrinsics={k_file(tmp_path / 'K.txt')}",
+                      f"mask={mask}", f"ckpt={tiny_ckpt}"))
+    assert e.value.path == mask
+
+
+def test_unreadable_video_through_task(tmp_path, tiny_ckpt):
+    from endorecon.tasks.reconstruct import run
+
+    bad = tmp_path / "clip.mp4"
+    bad.write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(500))
+    with pytest.raises(InputError) as e:
+        run(recon_cfg(tmp_path / "run", f"input={bad}", f"intrinsics={k_file(tmp_path / 'K.txt')}",
+                      f"ckpt={tiny_ckpt}"))
+    assert e.value.path == bad and "decode" in str(e.value)
+
+
+def test_textureless_frames_stop_before_sfm(tmp_path, tiny_ckpt):
+    from endorecon.tasks.reconstruct import run
+
+    frames = circle_frames(tmp_path / "frames", texture=False)
+    with pytest.raises(InputError, match="no texture"):
+        run(recon_cfg(tmp_path / "run", f"input={frames}", f"intrinsics={k_file(tmp_path / 'K.txt')}",
+                      f"ckpt={tiny_ckpt}"))
+    assert not (tmp_path / "run" / "sfm").exists()
+
+
+def test_bad_checkpoint_fails_before_sfm_and_keeps_the_input_stage(tmp_path):
+    from endorecon.tasks.reconstruct import run
+
+    frames = circle_frames(tmp_path / "frames")
+    bad = save_ckpt(tmp_path / "bad.ckpt", TINY_NET, weights_of=dict(TINY_NET, growth_rate=6))
+    run_dir = tmp_path / "run"
+    with pytest.raises(InputError, match="do not fit"):
+        run(recon_cfg(run_dir, f"input={frames}", f"intrinsics={k_file(tmp_path / 'K.txt')}", f"ckpt={bad}"))
+    assert (run_dir / "mask.png").is_file() and not (run_dir / "sfm").exists()
+
+
+def test_cli_exit_code_2_and_no_traceback(tmp_path):
+    """A path with '=' (like train.py's run dirs) passes through the CLI; bad input is one message, status 2."""
+    frames = circle_frames(tmp_path / "fold=0" / "frames")
+    r = subprocess.run(
+        [sys.executable, "reconstruct.py", f"input={frames}", f"ckpt={tmp_path}/iteration=0/last.ckpt",
+         f"paths.root_dir={tmp_path}"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120, env={**os.environ, "COLUMNS": "400"},
+    )
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert "error:" in r.stderr and "no intrinsics" in r.stderr and "fix: pass intrinsics=" in r.stderr
+    assert "Traceback" not in r.stderr and str(frames) in r.stderr
+
+
+# ------------------------------------------------------------------ SfM failure (fast: tiny blank-ish video)
+def _video(path: Path, frames: list[np.ndarray]) -> Path:
+    """Encode frames to H.264 with the imageio-ffmpeg binary."""
+    ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    src = path.parent / f".{path.stem}_src"
+    src.mkdir(exist_ok=True)
+    for k, f in enumerate(frames):
+        Image.fromarray(f).save(src / f"{k:04d}.png")
+    subprocess.run([ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-framerate", "10", "-i",
+                    str(src / "%04d.png"), "-c:v", "libx264", "-pix_fmt", "yuv444p", "-crf", "12", str(path)],
+                   check=True)
+    return path
+
+
+def test_video_without_texture_fails_in_sfm_clearly(tmp_path, tiny_ckpt):
+    """With the texture pre-check off, constant frames reach SfM: it must fail with SfM's own clear error,
+    and the decoded frames stay on disk."""
+    from endorecon.sfm.stage import SfMError
+    from endorecon.tasks.reconstruct import run
+
+    video = _video(tmp_path / "grey.mp4", [np.full((H, W, 3), 100 + k, np.uint8) for k in range(6)])
+    run_dir = tmp_path / "run"
+    with pytest.raises(SfMError, match="no acceptable model") as e:
+        run(recon_cfg(run_dir, f"input={video}", f"intrinsics={k_file(tmp_path / 'K.txt')}", f"ckpt={tiny_ckpt}",
+                      "input_checks.min_texture=0", "sfm.attempts=[{name: default, peak_threshold: 0.003}]"))
+    assert "textured tissue" in e.value.fix
+    assert (run_dir / "frames" / "decode.json").is_file()
+    assert json.loads((run_dir / "sfm" / "attempts.json").read_text())["status"] == "failed"
+
+
+# ------------------------------------------------------------------ end to end on a phantom video
+@pytest.fixture(scope="module")
+def phantom_video(tmp_path_factory):
+    from endorecon.phantom.generate import generate
+
+    root = tmp_path_factory.mktemp("phantom")
+    generate(root / "ph", patients=1, frames=20, height=128, width=160, seed=3)
+    seq = root / "ph" / "patient_00" / "seq_00"
+    frames = [np.asarray(Image.open(p).convert("RGB")) for p in sorted((seq / "frames").iterdir())]
+    return _video(root / "ph.mp4", frames), seq / "camera.json"
+
+
+@pytest.mark.slow
+def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeypatch):
+    from endorecon.tasks import reconstruct as R
+
+    video, camera = phantom_video
+    run_dir = tmp_path / "run"
+    cfg = recon_cfg(run_dir, f"input={video}", f"intrinsics={camera}", f"ckpt={tiny_ckpt}", "sfm.allow_partial=true")
+    R.run(cfg)
+    for name in ("frames/decode.json", "mask.png", "sfm/sequence.npz", "depth.npz", "mesh.ply", "report.md",
+                 "depth_std.png", "mesh_preview.png", "timings.json", "reconstruction/poses.txt",
+                 "reconstruction/failures.csv", "reconstruction/summary.json"):
+        assert (run_dir / name).is_file(), name
+    from endorecon.fusion.ply import read_mesh_ply
+
+    mesh = read_mesh_ply(run_dir / "mesh.ply")
+    assert len(mesh.triangle.indices) > 100 and "std" in mesh.vertex and "colors" in mesh.vertex
+    report = (run_dir / "report.md").read_text()
+    for stage in ("input", "sfm", "inference", "dense PGO", "fusion again", "**total**"):
+        assert stage in report
+    first = json.loads((run_dir / "timings.json").read_text())["stages"]
+    assert not any(s["skipped"] for s in first.values())
+    mesh_bytes = (run_dir / "mesh.ply").read_bytes()
+
+    # Second run: every completed stage must be skipped; calling its work fails the test.
+    def forbidden(*a, **k):
+        raise AssertionError("a completed stage ran again")
+
+    import endorecon.data.video as video_mod
+    import endorecon.pgo
+    import endorecon.sfm.colmap
+
+    monkeypatch.setattr(video_mod, "_decoder", forbidden)
+    monkeypatch.setattr(endorecon.sfm.colmap, "run_mapping", forbidden)
+    monkeypatch.setattr(R.pipeline, "infer_depth", forbidden)
+    monkeypatch.setattr(R.pipeline, "fuse_sequence", forbidden)
+    monkeypatch.setattr(endorecon.pgo, "optimize_poses", forbidden)
+    R.run(cfg)
+    second = json.loads((run_dir / "timings.json").read_text())["stages"]
+    for name in ("input", "sfm", "inference", "failure detection + PGO + fusion"):
+        assert second[name]["skipped"], name
+        assert second[name]["seconds"] == pytest.approx(first[name]["seconds"])  # the report keeps the real cost
+    assert (run_dir / "mesh.ply").read_bytes() == mesh_bytes

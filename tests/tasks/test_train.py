@@ -1,0 +1,131 @@
+"""The train task end to end: ``python train.py fold=0 iteration=1 debug=fast`` on CPU."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from endorecon.utils.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _compose(name, overrides):
+    from hydra import compose, initialize_config_dir
+
+    import endorecon.utils.resolvers  # noqa: F401
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose(config_name=name, overrides=overrides)
+
+
+def train_cfg(root: Path, *extra: str):
+    return _compose(
+        "train",
+        ["debug=fast", f"paths.root_dir={root}", f"paths.run_dir='{root}/outputs/train/fold=0'", *extra],
+    )
+
+
+@pytest.fixture(scope="session")
+def debug_run(debug_root):
+    from endorecon.tasks.train import run
+
+    cfg = train_cfg(debug_root, "fold=0", "iteration=1")
+    mean_mm = run(cfg)
+    return debug_root / "outputs" / "train" / "fold=0", mean_mm
+
+
+@pytest.mark.slow
+def test_two_iterations_end_to_end(debug_run):
+    fold_dir, mean_mm = debug_run
+    for it in (0, 1):
+        d = fold_dir / f"iteration={it}"
+        for name in ("metrics.json", "mesh.ply", "poses.txt", "failures.csv", "checkpoints/last.ckpt",
+                     ".hydra/config.yaml"):
+            assert (d / name).is_file(), f"{d / name} missing"
+        seq_dirs = sorted((d / "sequences").iterdir())
+        assert len(seq_dirs) == 2  # both debug patients, the held-out one included
+        for s in seq_dirs:
+            z = np.load(s / "simulated_depth.npz")
+            assert z["valid"].mean() > 0.2, f"{s}: simulated depth mostly invalid"
+        assert any((d / "tensorboard").rglob("events.out.tfevents*"))
+    m0 = json.loads((fold_dir / "iteration=0" / "metrics.json").read_text())
+    m1 = json.loads((fold_dir / "iteration=1" / "metrics.json").read_text())
+    # Iteration 0 has no simulated depth; iteration 1 trains with iteration 0's.
+    assert m0["train"]["train/dense_simulation_active"] == 0.0
+    assert m1["train"]["train/dense_simulation_active"] == 1.0
+    assert m1["train"]["train/dense_simulation_weighted"] != 0.0
+    for m in (m0, m1):
+        assert all(np.isfinite(v) for v in m["train"].values() if v is not None), "non-finite training metric"
+        assert m["train"]["train/skipped_batches"] == 0.0
+    # The held-out patient's mesh against its CT, after Sim(3) registration: a loose bound for the tiny
+    # debug schedule (4 batches of a 64x80 network); the default schedule is measured in the README.
+    ev = m1["evaluation"]
+    assert ev is not None and ev["n_points"] == 40000
+    assert ev["mean_mm"] < 3.0, ev
+    assert mean_mm == pytest.approx(ev["mean_mm"])
+
+
+@pytest.mark.slow
+def test_complete_iterations_are_skipped(debug_run, monkeypatch):
+    from endorecon.tasks import train
+
+    def boom(*a, **k):
+        raise AssertionError("a complete iteration was run again")
+
+    monkeypatch.setattr(train, "run_iteration", boom)
+    fold_dir, mean_mm = debug_run
+    before = (fold_dir / "iteration=1" / "metrics.json").stat().st_mtime
+    assert train.run(train_cfg(fold_dir.parents[2], "fold=0", "iteration=1")) == pytest.approx(mean_mm)
+    assert (fold_dir / "iteration=1" / "metrics.json").stat().st_mtime == before
+
+
+@pytest.mark.slow
+def test_missing_iteration_stops_with_command(debug_run):
+    from endorecon.tasks.train import run
+
+    fold_dir, _ = debug_run
+    root = fold_dir.parents[2]
+    cfg = _compose("train", ["debug=fast", f"paths.root_dir={root}", f"paths.run_dir='{root}/outputs/train/fold=1'",
+                                "fold=1", "iteration=1", "bootstrap.run_missing=false"])
+    with pytest.raises(InputError, match=r"python train.py fold=1 iteration=0"):
+        run(cfg)
+
+
+@pytest.mark.slow
+def test_unknown_fold_is_a_clear_error(debug_run):
+    from endorecon.tasks.train import run
+
+    root = debug_run[0].parents[2]
+    with pytest.raises(InputError, match=r"unknown fold 5.*\[0, 1\]"):
+        run(train_cfg(root, "fold=5"))
+
+
+def test_cli_shows_composed_config():
+    out = subprocess.run([sys.executable, "train.py", "fold=3", "iteration=2", "--cfg", "job"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "\nfold: 3\n" in out.stdout and "\niteration: 2\n" in out.stdout
+    assert "c1: 0.1" in out.stdout and "c2: 0.8" in out.stdout
+    assert "sparse_flow: 100.0" in out.stdout
+
+
+def test_cli_bad_fold_exits_2_without_traceback(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "train.py", "fold=abc", f"paths.root_dir={tmp_path}"], cwd=ROOT,
+        capture_output=True, text=True, timeout=120,
+    )
+    assert out.returncode != 0
+    assert "fold" in out.stderr
+
+
+def test_every_config_group_composes():
+    for overrides in (["experiment=paper"], ["experiment=cpu"], ["fusion=plain"], ["trainer=gpu"],
+                      ["debug=fast"], ["logger=none"]):
+        cfg = _compose("train", overrides)
+        assert cfg.fusion.name in ("adaptive", "plain")
+    cfg = _compose("train", ["experiment=paper"])
+    assert cfg.bootstrap.epochs_per_iteration == 20 and cfg.data.height == 256 and cfg.iteration == 2
