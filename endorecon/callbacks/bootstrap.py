@@ -50,14 +50,18 @@ class BootstrapCallback(L.Callback):
         summaries = []
         rows = ["sequence,frame,dense_simulation,sparse_flow,depth_consistency,flagged,reason"]
         test_seq = None
+        depth_eval = None
         for prep in self.prepared:
             seq = prep.seq
             sdir = it_dir / "sequences" / pipeline._slug(seq.name)
-            if (sdir / "summary.json").is_file():
+            held_out = seq.patient == int(cfg.fold)
+            if (sdir / "summary.json").is_file() and not (held_out and cfg.bootstrap.evaluate):
                 summary = json.loads((sdir / "summary.json").read_text())
             else:
                 depth, std, colors = pipeline.infer_depth(pl_module, seq, prep.cache)
                 summary = pipeline.refine_sequence(cfg, seq, prep.cache, depth, std, colors, prep.excluded, sdir)
+                if held_out and cfg.bootstrap.evaluate and depth_eval is None:
+                    depth_eval = pipeline.evaluate_depth(self.info.root, seq, depth, std)
             summaries.append(summary)
             csv = (sdir / "failures.csv").read_text().splitlines()
             rows += [f"{seq.name},{line}" for line in csv[1:]]
@@ -80,6 +84,7 @@ class BootstrapCallback(L.Callback):
             sequences=summaries,
             n_flagged=int(sum(s["n_flagged"] for s in summaries)),
             evaluation=evaluation,
+            depth_evaluation=depth_eval,
             bootstrap_s=time.perf_counter() - t_start,
         )
         self._log_tensorboard(trainer, summaries, evaluation)
@@ -105,6 +110,8 @@ class BootstrapCallback(L.Callback):
             for k in ("mean_mm", "median_mm", "p95_mm", "max_mm"):
                 if k in evaluation:
                     exp.add_scalar(f"evaluation/{k}", evaluation[k], step)
+        for k, v in (self.metrics.get("depth_evaluation") or {}).items():
+            exp.add_scalar(f"evaluation/depth_{k}", v, step)
         try:
             import open3d as o3d
 

@@ -275,3 +275,36 @@ def evaluate_against_ct(data_root: Path, seq: Sequence, mesh_path: Path, cam_fro
     gt_centers = camera_centers(torch.from_numpy(gt.cam_from_world[ok])).numpy()
     return evaluate_mesh(mesh_path, gt.mesh_path, out_dir, cam_centers=centers, gt_cam_centers=gt_centers,
                          cam_rotations=cam_from_world[ok, :3, :3], gt_cam_rotations=gt.cam_from_world[ok, :3, :3])
+
+
+def evaluate_depth(data_root: Path, seq: Sequence, depth: torch.Tensor, std: torch.Tensor) -> dict:
+    """Network depth of a phantom sequence against its GT depth: the SCARED metric set with per-frame median
+    scaling, and the Spearman correlation of the predicted std with the actual error (both after scaling).
+
+    Args:
+        seq: the sequence at the network's resolution (GT depth is area-averaged down to it).
+        depth, std: (N, 1, h, w).
+    """
+    import torch.nn.functional as F
+
+    from endorecon.data.dataset import load_ground_truth
+    from endorecon.evaluation.depth_metrics import depth_metrics, std_error_spearman
+
+    gt = load_ground_truth(data_root, seq.patient, seq.name.split("/")[-1])
+    g = torch.from_numpy(gt.depth_mm).float()[:, None]
+    v = (g > 0).float()
+    h, w = depth.shape[-2:]
+    g_small = F.interpolate(g, size=(h, w), mode="area")
+    v_small = F.interpolate(v, size=(h, w), mode="area") > 0.999  # only pixels whose whole footprint is valid
+    mask = v_small & torch.from_numpy(seq.mask)[None, None] & (depth > 0)
+    out = depth_metrics(depth, g_small, mask, median_scaling=True)
+    # Per-frame median scale, then rank-correlate std with |error| over all pixels.
+    errs, stds = torch.zeros_like(depth), torch.zeros_like(std)
+    for i in range(len(depth)):
+        m = mask[i]
+        if m.any():
+            s = g_small[i][m].median() / depth[i][m].median()
+            errs[i] = (depth[i] * s - g_small[i]).abs()
+            stds[i] = std[i] * s
+    out["std_error_spearman"] = std_error_spearman(stds, errs, mask)
+    return out

@@ -67,6 +67,10 @@ def test_two_iterations_end_to_end(debug_run):
     assert ev is not None and ev["n_points"] == 40000
     assert ev["mean_mm"] < 3.0, ev
     assert mean_mm == pytest.approx(ev["mean_mm"])
+    # Depth of the held-out patient against GT depth (SCARED set, per-frame median scaling).
+    de = m1["depth_evaluation"]
+    assert 0 < de["abs_rel"] < 0.5 and 0 < de["a1"] <= 1 and de["n_frames"] == 20
+    assert -1 <= de["std_error_spearman"] <= 1
 
 
 @pytest.mark.slow
