@@ -14,8 +14,8 @@ every frame sees the same texture at the same place.
 Shading: a point light at the camera centre, inverse-square fall-off, Lambert
 diffuse plus a narrow Blinn-Phong specular lobe (wet mucosa; with light =
 viewer the half vector is the view direction) whose strength varies with a
-wetness field; normals perturbed by ~2 mm bumps so highlights form soft blobs
-on their crests, as on real tissue.  Then auto-exposure, gamma, shot and
+wetness field; the highlight's normals are perturbed by ~2 mm bumps so
+highlights form soft blobs on their crests, as on real tissue.  Then auto-exposure, gamma, shot and
 read noise.
 """
 
@@ -31,7 +31,7 @@ _CELLS_PER_FEATURE = 4.0
 _N_FIELDS = 24  # independent noise fields (rotation + offset of a tile)
 _MUCOSA_OCTAVES_MM = (0.13, 0.2, 0.32, 0.5, 0.8, 1.3, 2.1, 3.4)
 _MUCOSA_CONTRAST = 0.09  # log-albedo std of each octave
-_TONE_A = 8.0  # strength of the logarithmic tone curve (larger lifts the far, dark walls more)
+_TONE_A = 20.0  # strength of the logarithmic tone curve (larger lifts the far, dark walls more)
 
 
 def _noise_tile(rng: np.random.Generator, n: int = _TILE) -> np.ndarray:
@@ -168,12 +168,15 @@ def shade(
         shininess: Blinn-Phong exponent of the wet-mucosa highlight (larger = smaller highlights).
     """
     props = texture(points, footprint_mm)
+    cos = np.abs(np.sum(normals * ray_dirs, axis=1))  # light at the camera: cos(incidence) = cos(view)
+    # the bumps shape the highlights only: on diffuse shading at grazing views they would make a
+    # strongly view-dependent pattern that moves over the surface from frame to frame
     n = normals + props["bump"]
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
-    cos = np.abs(np.sum(n * ray_dirs, axis=1))  # light at the camera: cos(incidence) = cos(view)
+    cos_b = np.abs(np.sum(n * ray_dirs, axis=1))
     falloff = 1.0 / np.maximum(ray_len, 1.0) ** 2
     diffuse = props["albedo"] * cos[:, None]
-    spec = props["specular"] * cos**shininess
+    spec = props["specular"] * cos_b**shininess
     return (diffuse + spec[:, None]) * falloff[:, None]
 
 

@@ -78,7 +78,7 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
     sfm_seqs = [s for s in pipeline.run_sfm(cfg, info.sequences, info.root) if s.patient == int(cfg.fold)]
     prev = fold_dir / f"iteration={last - 1}" if last > 0 else None
     prepared = prepare_sequences(cfg, sfm_seqs, prev)
-    module = load_module(fold_dir / f"iteration={last}" / "checkpoints" / "last.ckpt")
+    module, _ = load_module(fold_dir / f"iteration={last}" / "checkpoints" / "last.ckpt")
     rows = []
     for raw, prep in zip(tests, prepared):
         slug = pipeline._slug(prep.seq.name)

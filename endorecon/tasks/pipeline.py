@@ -170,10 +170,42 @@ def load_simulated(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _stage_cfg(cfg_group: DictConfig) -> dict:
-    """A stage's config as a plain dict without the pipeline's own ``enabled`` switch."""
+    """A stage's config as a plain dict without the pipeline's own keys (``enabled``, ``resolution_scale``)."""
     d = OmegaConf.to_container(cfg_group, resolve=True)
     d.pop("enabled", None)
+    d.pop("resolution_scale", None)
     return d
+
+
+def refine_poses(cfg_pgo: DictConfig, seq: Sequence, cache, depth, std):
+    """Dense PGO, at ``cfg_pgo.resolution_scale`` of the network's resolution.
+
+    The dense consistency term costs per pixel: at half resolution it is 4x cheaper.  The
+    sparse flow is re-projected exactly at the lower resolution (not resampled), and depth and
+    std are area-averaged.
+    """
+    import torch.nn.functional as F
+
+    from endorecon.data.sparse import build_sparse_cache
+    from endorecon.data.transforms import resize_sequence
+    from endorecon.pgo import optimize_poses
+
+    scale = float(cfg_pgo.get("resolution_scale", 1.0))
+    if scale != 1.0:
+        h, w = max(8, round(seq.height * scale)), max(8, round(seq.width * scale))
+        seq = resize_sequence(seq, h, w)
+        cache = build_sparse_cache(seq)
+        depth = F.interpolate(depth, size=(h, w), mode="area")
+        std = F.interpolate(std, size=(h, w), mode="area")
+
+    def sparse_flow_fn(i, j):
+        f, v = cache.flow_map(i, j)
+        return torch.from_numpy(f), torch.from_numpy(v)
+
+    K = torch.from_numpy(seq.intrinsics).float()
+    mask = torch.from_numpy(seq.mask)[None]
+    return optimize_poses(depth, std, K, torch.from_numpy(seq.cam_from_world), mask, sparse_flow_fn,
+                          _stage_cfg(cfg_pgo))
 
 
 def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, excluded: np.ndarray | None,
@@ -181,7 +213,6 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
     """One sequence's end-of-iteration work; writes ``out_dir/{mesh.ply, poses.txt, simulated_depth.npz,
     failures.csv, summary.json}`` and returns the summary.  Skips if ``summary.json`` exists."""
     from endorecon.failure import detect_failures
-    from endorecon.pgo import optimize_poses
 
     out_dir = Path(out_dir)
     done = out_dir / "summary.json"
@@ -192,7 +223,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
     times = {}
     poses = seq.cam_from_world.copy()
     registered = np.isfinite(poses).all(axis=(1, 2))
-    use = registered & (np.zeros(n, bool) if excluded is None else ~excluded)
+    use = registered if excluded is None else registered & ~excluded
 
     # 1. fuse with the current poses, render it back: the simulated depth that failure detection judges.
     t0 = time.perf_counter()
@@ -222,11 +253,16 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
     t0 = time.perf_counter()
     pgo_summary = {}
     if cfg.pgo.enabled:
-        res = optimize_poses(depth, std, K, torch.from_numpy(poses), mask, sparse_flow_fn, _stage_cfg(cfg.pgo))
+        res = refine_poses(cfg.pgo, seq.replace(cam_from_world=poses), cache, depth, std)
         new_poses = res.cam_from_world.detach().double().numpy()
         new_poses[~registered] = np.nan
-        pgo_summary = dict(loss_before=float(res.history[0]) if len(res.history) else None,
-                           loss_after=float(res.history[-1]) if len(res.history) else None)
+        rot = res.update_rotation_deg[torch.isfinite(res.update_rotation_deg)]
+        trans = res.update_translation[torch.isfinite(res.update_translation)]
+        pgo_summary = dict(loss_before=float(res.loss_before), loss_after=float(res.loss_after),
+                           update_rotation_deg_median=float(rot.median()) if len(rot) else None,
+                           update_rotation_deg_max=float(rot.max()) if len(rot) else None,
+                           update_translation_median=float(trans.median()) if len(trans) else None,
+                           update_translation_max=float(trans.max()) if len(trans) else None)
         poses = new_poses
     times["pgo_s"] = time.perf_counter() - t0
     write_poses_txt(out_dir / "poses.txt", [p.name for p in seq.frame_paths], poses)
