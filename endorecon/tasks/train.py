@@ -108,6 +108,8 @@ def run_iteration(cfg: DictConfig, it: int, sfm_seqs: list[Sequence], info: pipe
     prepared = prepare_sequences(cfg, sfm_seqs, prev_dir)
     datamodule = EndoDataModule(cfg.data, prepared, fold=int(cfg.fold), patients_with_ct=info.patients_with_ct)
     module = DepthModule(cfg.model, cfg.loss)
+    # Saved with the checkpoint so that reconstruct.py knows the resolution the network learnt at.
+    module.hparams["input_hw"] = [int(cfg.data.height), int(cfg.data.width)]
     if prev_dir is not None and cfg.bootstrap.warm_start:
         load_weights(module, prev_dir / "checkpoints" / "last.ckpt")
         # The warm-up protects a random init from the dense NLLs; a warm-started network needs none.
