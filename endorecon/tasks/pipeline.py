@@ -211,7 +211,11 @@ def refine_poses(cfg_pgo: DictConfig, seq: Sequence, cache, depth, std):
 def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, excluded: np.ndarray | None,
                     out_dir: Path) -> dict:
     """One sequence's end-of-iteration work; writes ``out_dir/{mesh.ply, poses.txt, simulated_depth.npz,
-    failures.csv, summary.json}`` and returns the summary.  Skips if ``summary.json`` exists."""
+    failures.csv, resfm.json, summary.json}`` and returns the summary.  Skips if ``summary.json`` exists.
+
+    A frame range flagged again after being flagged in the previous iteration
+    (``<run>/iteration=<i-1>/sequences/<slug>/failures.csv``) is solved again by SfM and its aligned poses
+    replace the current ones before PGO (:mod:`endorecon.tasks.resfm`, ``failure.rerun``)."""
     from endorecon.failure import detect_failures
 
     out_dir = Path(out_dir)
@@ -248,6 +252,25 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
     if cfg.failure.enabled:
         flagged[list(report.flagged_frames)] = True
     times["failure_s"] = time.perf_counter() - t0
+
+    # 2b. a range flagged in this and the previous iteration: SfM rerun on it, aligned poses spliced in.
+    resfm_info = {}
+    if cfg.failure.enabled:
+        from endorecon.tasks import resfm
+
+        t0 = time.perf_counter()
+        try:
+            poses, resfm_info = resfm.run(cfg, seq, report, poses, out_dir)
+        except Exception as e:  # a failed rerun must not cost the iteration: keep the poses, record why
+            log.exception("%s: SfM rerun of repeatedly flagged ranges failed; poses kept", seq.name)
+            resfm_info = dict(ranges=[], replaced_frames=[], error=f"{type(e).__name__}: {e}")
+            try:
+                resfm.write_info(out_dir, resfm_info)
+            except OSError:
+                pass
+        registered = np.isfinite(poses).all(axis=(1, 2))  # a rerun may register a frame SfM had lost
+        use = registered if excluded is None else registered & ~excluded
+        times["resfm_s"] = time.perf_counter() - t0
 
     # 3. dense pose graph optimisation.
     t0 = time.perf_counter()
@@ -288,6 +311,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         n_flagged=int(flagged.sum()),
         checked=int(len(report.checked_frames)) if hasattr(report, "checked_frames") else None,
         pgo=pgo_summary,
+        resfm=resfm_info,
         times=times,
     )
     atomic_write_text(done, json.dumps(summary, indent=2) + "\n")
