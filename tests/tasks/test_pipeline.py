@@ -1,0 +1,45 @@
+"""Pipeline steps of the bootstrapping loop on a tiny phantom with ground truth."""
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from endorecon.data.dataset import load_dataset, load_ground_truth
+from endorecon.phantom import generate
+from endorecon.tasks import pipeline
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = generate(tmp_path_factory.mktemp("ph") / "ph", patients=1, frames=6, height=64, width=80, seed=3)
+    seq = load_dataset(root)[0]
+    return root, seq, load_ground_truth(root, 0, "seq_00")
+
+
+def test_simulated_depth_of_gt_mesh_at_gt_poses_is_gt_depth(tiny):
+    root, seq, gt = tiny
+    sim, valid = pipeline.render_simulated(gt.mesh_path, seq, gt.cam_from_world)
+    gt_valid = gt.depth_mm > 0
+    assert valid.sum() > 0.9 * gt_valid.sum()
+    both = valid & gt_valid
+    assert np.abs(sim[both] - gt.depth_mm[both]).max() < 1e-3  # mm (GT depth is stored as float32)
+    assert not valid[~seq.mask[None].repeat(len(seq), 0)].any()  # nothing outside the endoscope mask
+
+
+def test_fusing_gt_depth_at_gt_poses_lands_on_the_gt_mesh(tiny):
+    from endorecon.rendering import MeshRenderer
+
+    root, seq, gt = tiny
+    cfg = OmegaConf.create({"name": "adaptive", "c1": 0.1, "c2": 0.8, "voxel_size": None, "voxel_fraction": 0.02,
+                            "compile": False, "device": "CPU:0"})
+    depth = torch.from_numpy(gt.depth_mm)[:, None]
+    colors = np.stack([seq.load_frame(i) for i in range(len(seq))]).astype(np.float32) / 255
+    volume = pipeline.fuse_sequence(cfg, seq, depth, depth * 0.01, colors, gt.cam_from_world, np.ones(len(seq), bool))
+    mesh = volume.extract_mesh()
+    v = mesh.vertex.positions.numpy()
+    voxel = 0.02 * float(np.median(gt.depth_mm[gt.depth_mm > 0]))
+    d = MeshRenderer(gt.mesh_path).distance(v)
+    assert len(v) > 100 and np.median(d) < 0.5 * voxel
+    with pytest.raises(Exception, match="no registered, unflagged frame"):
+        pipeline.fuse_sequence(cfg, seq, depth, depth * 0.01, colors, gt.cam_from_world, np.zeros(len(seq), bool))
