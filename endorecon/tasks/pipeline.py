@@ -177,6 +177,16 @@ def _stage_cfg(cfg_group: DictConfig) -> dict:
     return d
 
 
+def _flow_fn(cache):
+    """``(i, j) -> (flow (2,H,W), valid (1,H,W))`` torch tensors from a SparseCache (failure detection, PGO)."""
+
+    def sparse_flow_fn(i, j):
+        f, v = cache.flow_map(i, j)
+        return torch.from_numpy(f), torch.from_numpy(v)
+
+    return sparse_flow_fn
+
+
 def refine_poses(cfg_pgo: DictConfig, seq: Sequence, cache, depth, std):
     """Dense PGO, at ``cfg_pgo.resolution_scale`` of the network's resolution.
 
@@ -198,10 +208,7 @@ def refine_poses(cfg_pgo: DictConfig, seq: Sequence, cache, depth, std):
         depth = F.interpolate(depth, size=(h, w), mode="area")
         std = F.interpolate(std, size=(h, w), mode="area")
 
-    def sparse_flow_fn(i, j):
-        f, v = cache.flow_map(i, j)
-        return torch.from_numpy(f), torch.from_numpy(v)
-
+    sparse_flow_fn = _flow_fn(cache)
     K = torch.from_numpy(seq.intrinsics).float()
     mask = torch.from_numpy(seq.mask)[None]
     return optimize_poses(depth, std, K, torch.from_numpy(seq.cam_from_world), mask, sparse_flow_fn,
@@ -239,10 +246,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
     K = torch.from_numpy(seq.intrinsics).float()
     mask = torch.from_numpy(seq.mask)[None]
 
-    def sparse_flow_fn(i, j):
-        f, v = cache.flow_map(i, j)
-        return torch.from_numpy(f), torch.from_numpy(v)
-
+    sparse_flow_fn = _flow_fn(cache)
     # 2. failure detection.
     t0 = time.perf_counter()
     flagged = np.zeros(n, bool)
