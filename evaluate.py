@@ -1,6 +1,7 @@
 """Evaluate a mesh against a reference surface: ``python evaluate.py mesh=<ply> reference=<ply>``."""
 
 import os
+import sys
 
 # Idle OpenMP threads of torch and open3d spin and starve each other (~10x slower fusion on 2 cores).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -9,6 +10,10 @@ import hydra  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
 import endorecon.utils.resolvers  # noqa: E402,F401  (config resolvers)
+
+
+# Path overrides are quoted for Hydra, so any path works (e.g. a mesh under .../fold=0/iteration=1/).
+PATH_KEYS = ("mesh", "reference", "trajectory", "gt_trajectory", "out")
 
 
 @hydra.main(config_path="conf", config_name="evaluate", version_base="1.3")
@@ -20,4 +25,7 @@ def main(cfg: DictConfig):
 
 
 if __name__ == "__main__":
+    from endorecon.utils.cli import quote_path_overrides
+
+    sys.argv = sys.argv[:1] + quote_path_overrides(sys.argv[1:], PATH_KEYS)
     main()

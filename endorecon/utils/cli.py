@@ -2,9 +2,24 @@
 
 from __future__ import annotations
 
+import re
 import sys
 
 from endorecon.utils.errors import EndoreconError
+
+
+def quote_path_overrides(argv: list[str], keys: tuple[str, ...]) -> list[str]:
+    """Quote the values of path overrides (``key=path`` for ``key`` in ``keys``) so that Hydra's grammar
+    accepts any path, e.g. one under ``outputs/train/fold=0/iteration=1/`` (an unquoted ``=`` in a value
+    is a Hydra syntax error)."""
+    out = []
+    for arg in argv:
+        m = re.fullmatch(rf"(\+{{0,2}}(?:{'|'.join(map(re.escape, keys))}))=(.*)", arg, flags=re.S)
+        if m and m.group(2) and m.group(2)[0] not in "'\"" and m.group(2) != "null":
+            val = m.group(2).replace("\\", "\\\\").replace("'", "\\'")
+            arg = f"{m.group(1)}='{val}'"
+        out.append(arg)
+    return out
 
 
 def report_errors(fn, *args, **kwargs):

@@ -78,13 +78,10 @@ def k_file(path: Path) -> Path:
 
 # ------------------------------------------------------------------ units
 def test_quote_path_overrides():
-    sys.path.insert(0, str(ROOT))
-    try:
-        from reconstruct import quote_path_overrides
-    finally:
-        sys.path.remove(str(ROOT))
+    from endorecon.utils.cli import quote_path_overrides
+
     got = quote_path_overrides(["ckpt=/a/fold=0/iteration=1/last.ckpt", "input=/x/it's", "mask=null",
-                                "pgo.iterations=3", "input='/q=1'"])
+                                "pgo.iterations=3", "input='/q=1'"], ("input", "ckpt", "intrinsics", "mask"))
     assert got == ["ckpt='/a/fold=0/iteration=1/last.ckpt'", "input='/x/it\\'s'", "mask=null", "pgo.iterations=3",
                    "input='/q=1'"]
 
