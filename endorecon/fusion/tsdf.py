@@ -75,6 +75,32 @@ def _as_array(x, name: str, ndim: int | tuple[int, ...], shape=None) -> torch.Te
     return t
 
 
+def drop_small_components(mesh: o3d.t.geometry.TriangleMesh, min_fraction: float) -> o3d.t.geometry.TriangleMesh:
+    """Remove the connected pieces of ``mesh`` with fewer than ``min_fraction`` of its triangles.
+
+    Depth outliers fused from one or two frames leave small floating pieces
+    beside the surface; they carry no surface the other frames agree on.
+    The largest piece is always kept; ``min_fraction`` = 0 returns the mesh unchanged.
+    """
+    if min_fraction <= 0 or "indices" not in mesh.triangle or mesh.triangle.indices.shape[0] == 0:
+        return mesh
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    faces = mesh.triangle.indices.cpu().numpy().astype(np.int64)
+    n_vertices = int(mesh.vertex.positions.shape[0])
+    rows = np.concatenate([faces[:, 0], faces[:, 1]])
+    cols = np.concatenate([faces[:, 1], faces[:, 2]])
+    graph = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n_vertices, n_vertices))
+    _, label = connected_components(graph, directed=False)
+    face_label = label[faces[:, 0]]
+    sizes = np.bincount(face_label)
+    keep = (sizes[face_label] >= min_fraction * len(faces)) | (face_label == np.argmax(sizes))
+    if keep.all():
+        return mesh
+    return mesh.select_faces_by_mask(o3c.Tensor(keep, device=mesh.device))  # also drops the unused vertices
+
+
 class _TSDFBase:
     """Shared frame checks, block activation and mesh saving."""
 
@@ -82,7 +108,12 @@ class _TSDFBase:
     channels: tuple[int, ...] = ()
 
     def __init__(self, voxel_size: float, block_resolution: int = 8, block_count: int = 20000,
-                 depth_max: float = float("inf"), mesh_weight_threshold: float = 1.0, device: str = "CPU:0"):
+                 depth_max: float = float("inf"), mesh_weight_threshold: float = 1.0, device: str = "CPU:0",
+                 min_component_fraction: float = 0.0):
+        if not 0.0 <= min_component_fraction < 1.0:
+            raise InputError(f"fusion: min_component_fraction must be in [0, 1), got {min_component_fraction}",
+                             fix="set fusion.min_component_fraction to e.g. 0.01 (0 keeps every piece)")
+        self.min_component_fraction = float(min_component_fraction)
         if not (np.isfinite(voxel_size) and voxel_size > 0):
             raise InputError(f"fusion: voxel_size must be a positive number, got {voxel_size}", fix="set fusion.voxel_size or fusion.voxel_fraction")
         if int(block_resolution) < 2:
@@ -158,7 +189,8 @@ class _TSDFBase:
             return o3d.t.geometry.TriangleMesh(o3c.Device(self.device))
         # Open3D meshes voxels with weight > threshold; weights count observations (integers),
         # so this meshes voxels observed at least mesh_weight_threshold times
-        return self.vbg.extract_triangle_mesh(max(self.mesh_weight_threshold - 0.5, 0.0))
+        mesh = self.vbg.extract_triangle_mesh(max(self.mesh_weight_threshold - 0.5, 0.0))
+        return drop_small_components(mesh, self.min_component_fraction)
 
     def save_mesh(self, path: str | Path) -> Path:
         """Extract the mesh and write it to ``path`` (PLY, atomically); returns ``path``."""
@@ -196,8 +228,10 @@ class AdaptiveTSDF(_TSDFBase):
     def __init__(self, voxel_size: float, c1: float = 0.1, c2: float = 0.8, trunc_std_multiplier: float = 3.0,
                  trunc_min_voxels: float = 6.0, trunc_max_voxels: float = 24.0, depth_max: float = float("inf"),
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
-                 std_mode: str = "propagate", compile: bool = False, device: str = "CPU:0"):
-        super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device)
+                 std_mode: str = "propagate", compile: bool = False, device: str = "CPU:0",
+                 min_component_fraction: float = 0.0):
+        super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
+                         min_component_fraction)
         if not (0 < c1 <= c2 <= 1):
             raise InputError(f"fusion: need 0 < c1 <= c2 <= 1, got c1={c1}, c2={c2}", fix="fix fusion.c1 / fusion.c2")
         if not (0 < trunc_min_voxels <= trunc_max_voxels):
@@ -333,8 +367,9 @@ class PlainTSDF(_TSDFBase):
 
     def __init__(self, voxel_size: float, trunc_voxels: float = 6.0, depth_max: float = float("inf"),
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
-                 device: str = "CPU:0"):
-        super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device)
+                 device: str = "CPU:0", min_component_fraction: float = 0.0):
+        super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
+                         min_component_fraction)
         if not trunc_voxels > 0:
             raise InputError(f"fusion: trunc_voxels must be > 0, got {trunc_voxels}")
         self.trunc_voxels = float(trunc_voxels)

@@ -358,3 +358,31 @@ def _voxels_by_key(vol: AdaptiveTSDF) -> dict[str, torch.Tensor]:
         a = _torch_view(vol.vbg.attribute(name))
         out[name] = a.reshape(a.shape[0], -1)[buf[order]]
     return out
+
+
+# ------------------------------------------------------------ mesh cleaning
+@pytest.mark.parametrize("cls", [AdaptiveTSDF, PlainTSDF])
+def test_small_floating_pieces_are_dropped(cls):
+    """A patch of outlier depth from one frame makes a separate small piece; min_component_fraction removes it
+    and leaves the plane whole."""
+    voxel = 0.02
+    poses = [look_at((0.05 * np.cos(a), 0.05 * np.sin(a), 0.0), (0.0, 0.0, 1.0)) for a in np.linspace(0, 2 * np.pi, 4, endpoint=False)]
+    depths = [plane_depth(T, (0.0, 0.0, 1.0), 1.0) for T in poses]
+    outlier = depths[0].copy()
+    outlier[20:30, 30:40] = 0.6  # 0.4 in front of the plane: far outside every truncation band
+    depths[0] = outlier
+    stds = [np.full((H, W), 0.2 * voxel) for _ in poses]
+    kw = {"compile": False} if cls is AdaptiveTSDF else {}
+
+    def fused(fraction):
+        vol = cls(voxel, min_component_fraction=fraction, **kw)
+        integrate_all(vol, depths, stds, poses)
+        return vol.extract_mesh().vertex.positions.numpy()
+
+    kept, cleaned = fused(0.0), fused(0.05)
+    assert (np.abs(kept[:, 2] - 0.6) < 0.1).sum() > 10  # the outlier piece is there without cleaning
+    assert (np.abs(cleaned[:, 2] - 0.6) < 0.1).sum() == 0
+    plane = np.abs(kept[:, 2] - 1.0) < 0.1
+    assert (np.abs(cleaned[:, 2] - 1.0) < 0.1).sum() == plane.sum()
+    with pytest.raises(InputError, match="min_component_fraction"):
+        cls(voxel, min_component_fraction=1.5, **kw)
