@@ -50,7 +50,7 @@ class BootstrapCallback(L.Callback):
         summaries = []
         rows = ["sequence,frame,dense_simulation,sparse_flow,depth_consistency,flagged,reason"]
         test_seq = None
-        depth_eval = None
+        depth_eval = depth_eval_capped = None
         for prep in self.prepared:
             seq = prep.seq
             sdir = it_dir / "sequences" / pipeline._slug(seq.name)
@@ -62,6 +62,9 @@ class BootstrapCallback(L.Callback):
                 summary = pipeline.refine_sequence(cfg, seq, prep.cache, depth, std, colors, prep.excluded, sdir)
                 if held_out and cfg.bootstrap.evaluate and depth_eval is None:
                     depth_eval = pipeline.evaluate_depth(self.info.root, seq, depth, std)
+                    cap = cfg.bootstrap.get("depth_cap_mm")
+                    if cap is not None:
+                        depth_eval_capped = pipeline.evaluate_depth(self.info.root, seq, depth, std, float(cap))
             summaries.append(summary)
             csv = (sdir / "failures.csv").read_text().splitlines()
             rows += [f"{seq.name},{line}" for line in csv[1:]]
@@ -85,6 +88,7 @@ class BootstrapCallback(L.Callback):
             n_flagged=int(sum(s["n_flagged"] for s in summaries)),
             evaluation=evaluation,
             depth_evaluation=depth_eval,
+            depth_evaluation_capped=depth_eval_capped,
             bootstrap_s=time.perf_counter() - t_start,
         )
         self._log_tensorboard(trainer, summaries, evaluation)
@@ -112,6 +116,8 @@ class BootstrapCallback(L.Callback):
                     exp.add_scalar(f"evaluation/{k}", evaluation[k], step)
         for k, v in (self.metrics.get("depth_evaluation") or {}).items():
             exp.add_scalar(f"evaluation/depth_{k}", v, step)
+        for k, v in (self.metrics.get("depth_evaluation_capped") or {}).items():
+            exp.add_scalar(f"evaluation/depth_capped_{k}", v, step)
         try:
             import open3d as o3d
 

@@ -341,13 +341,16 @@ def evaluate_against_ct(data_root: Path, seq: Sequence, mesh_path: Path, cam_fro
                          cam_rotations=cam_from_world[ok, :3, :3], gt_cam_rotations=gt.cam_from_world[ok, :3, :3])
 
 
-def evaluate_depth(data_root: Path, seq: Sequence, depth: torch.Tensor, std: torch.Tensor) -> dict:
+def evaluate_depth(data_root: Path, seq: Sequence, depth: torch.Tensor, std: torch.Tensor,
+                   cap_mm: float | None = None) -> dict:
     """Network depth of a phantom sequence against its GT depth: the SCARED metric set with per-frame median
     scaling, and the Spearman correlation of the predicted std with the actual error (both after scaling).
 
     Args:
         seq: the sequence at the network's resolution (GT depth is area-averaged down to it).
         depth, std: (N, 1, h, w).
+        cap_mm: optional depth cap (SCARED style): pixels with GT deeper than it are left out and
+            predictions are clamped to it.
     """
     import torch.nn.functional as F
 
@@ -361,7 +364,9 @@ def evaluate_depth(data_root: Path, seq: Sequence, depth: torch.Tensor, std: tor
     g_small = F.interpolate(g, size=(h, w), mode="area")
     v_small = F.interpolate(v, size=(h, w), mode="area") > 0.999  # only pixels whose whole footprint is valid
     mask = v_small & torch.from_numpy(seq.mask)[None, None] & (depth > 0)
-    out = depth_metrics(depth, g_small, mask, median_scaling=True)
+    out = depth_metrics(depth, g_small, mask, median_scaling=True, cap=cap_mm)
+    if cap_mm is not None:
+        mask = mask & (g_small <= cap_mm)
     # Per-frame median scale, then rank-correlate std with |error| over all pixels.
     errs, stds = torch.zeros_like(depth), torch.zeros_like(std)
     for i in range(len(depth)):

@@ -71,6 +71,8 @@ def test_two_iterations_end_to_end(debug_run):
     de = m1["depth_evaluation"]
     assert 0 < de["abs_rel"] < 0.5 and 0 < de["a1"] <= 1 and de["n_frames"] == 20
     assert -1 <= de["std_error_spearman"] <= 1
+    capped = m1["depth_evaluation_capped"]  # same metrics without GT deeper than bootstrap.depth_cap_mm
+    assert 0 < capped["abs_rel"] < 0.5 and 0 < capped["n_pixels"] <= de["n_pixels"]
 
 
 @pytest.mark.slow
