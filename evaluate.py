@@ -1,15 +1,11 @@
 """Evaluate a mesh against a reference surface: ``python evaluate.py mesh=<ply> reference=<ply>``."""
 
-import os
 import sys
 
-# Idle OpenMP threads of torch and open3d spin and starve each other (~10x slower fusion on 2 cores).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import hydra
+from omegaconf import DictConfig
 
-import hydra  # noqa: E402
-from omegaconf import DictConfig  # noqa: E402
-
-import endorecon.utils.resolvers  # noqa: E402,F401  (config resolvers)
+import endorecon.utils.resolvers  # noqa: F401  (config resolvers)
 
 
 # Path overrides are quoted for Hydra, so any path works (e.g. a mesh under .../fold=0/iteration=1/).
