@@ -17,9 +17,15 @@ def ct_mesh() -> o3d.geometry.TriangleMesh:
     """~2000-triangle nasal cavity in mm (or a torus when the shared data is absent)."""
     if ASR.is_file():
         mesh = o3d.io.read_triangle_mesh(str(ASR)).simplify_quadric_decimation(2000)
-    else:  # asymmetric enough once squashed; keeps the tests runnable without ../shared
+    else:  # keeps the tests runnable without ../shared
         mesh = o3d.geometry.TriangleMesh.create_torus(20.0, 6.0, 40, 16)
-        mesh.vertices = o3d.utility.Vector3dVector(np.asarray(mesh.vertices) * [1.0, 0.6, 1.3])
+        v = np.asarray(mesh.vertices) * [1.0, 0.6, 1.3]
+        # A squashed torus alone is symmetric under 180-degree turns about each axis, so a registration
+        # could land on a turned copy: two unequal bumps on the ring leave it no symmetry.
+        for angle, height in ((0.0, 6.0), (100.0, 3.0)):
+            c = 20.0 * np.array([np.cos(np.radians(angle)), 0.6 * np.sin(np.radians(angle))])
+            v[:, 2] += height * np.exp(-((v[:, :2] - c) ** 2).sum(1) / (2 * 5.0 ** 2))
+        mesh.vertices = o3d.utility.Vector3dVector(v)
     mesh.remove_unreferenced_vertices()
     return mesh
 
