@@ -342,15 +342,17 @@ def evaluate_against_ct(data_root: Path, seq: Sequence, mesh_path: Path, cam_fro
 
 
 def evaluate_depth(data_root: Path, seq: Sequence, depth: torch.Tensor, std: torch.Tensor,
-                   cap_mm: float | None = None) -> dict:
+                   caps_mm: tuple[float | None, ...] = (None,)) -> list[dict]:
     """Network depth of a phantom sequence against its GT depth: the SCARED metric set with per-frame median
     scaling, and the Spearman correlation of the predicted std with the actual error (both after scaling).
 
     Args:
         seq: the sequence at the network's resolution (GT depth is area-averaged down to it).
         depth, std: (N, 1, h, w).
-        cap_mm: optional depth cap (SCARED style): pixels with GT deeper than it are left out and
-            predictions are clamped to it.
+        caps_mm: depth caps (SCARED style: pixels with GT deeper than the cap are left out and predictions
+            are clamped to it; None: no cap).
+    Returns:
+        one metric dict per cap, in order (the GT is loaded and resampled once for all).
     """
     import torch.nn.functional as F
 
@@ -363,17 +365,19 @@ def evaluate_depth(data_root: Path, seq: Sequence, depth: torch.Tensor, std: tor
     h, w = depth.shape[-2:]
     g_small = F.interpolate(g, size=(h, w), mode="area")
     v_small = F.interpolate(v, size=(h, w), mode="area") > 0.999  # only pixels whose whole footprint is valid
-    mask = v_small & torch.from_numpy(seq.mask)[None, None] & (depth > 0)
-    out = depth_metrics(depth, g_small, mask, median_scaling=True, cap=cap_mm)
-    if cap_mm is not None:
-        mask = mask & (g_small <= cap_mm)
-    # Per-frame median scale, then rank-correlate std with |error| over all pixels.
-    errs, stds = torch.zeros_like(depth), torch.zeros_like(std)
-    for i in range(len(depth)):
-        m = mask[i]
-        if m.any():
-            s = g_small[i][m].median() / depth[i][m].median()
-            errs[i] = (depth[i] * s - g_small[i]).abs()
-            stds[i] = std[i] * s
-    out["std_error_spearman"] = std_error_spearman(stds, errs, mask)
-    return out
+    valid = v_small & torch.from_numpy(seq.mask)[None, None] & (depth > 0)
+    results = []
+    for cap_mm in caps_mm:
+        out = depth_metrics(depth, g_small, valid, median_scaling=True, cap=cap_mm)
+        mask = valid if cap_mm is None else valid & (g_small <= cap_mm)
+        # Per-frame median scale, then rank-correlate std with |error| over all pixels.
+        errs, stds = torch.zeros_like(depth), torch.zeros_like(std)
+        for i in range(len(depth)):
+            m = mask[i]
+            if m.any():
+                s = g_small[i][m].median() / depth[i][m].median()
+                errs[i] = (depth[i] * s - g_small[i]).abs()
+                stds[i] = std[i] * s
+        out["std_error_spearman"] = std_error_spearman(stds, errs, mask)
+        results.append(out)
+    return results
