@@ -72,6 +72,11 @@ def run(cfg: DictConfig) -> float | None:
     for key in ("fold", "iteration"):
         if not isinstance(cfg[key], int) or cfg[key] < 0:
             raise InputError(f"{key} must be an integer >= 0, got {cfg[key]!r}", fix=f"pass {key}=0, 1, 2 ...")
+    # checked before any work: a bad cap would otherwise fail only in the evaluation after an iteration's training
+    cap = cfg.bootstrap.get("depth_cap_mm")
+    if cap is not None and not (isinstance(cap, (int, float)) and not isinstance(cap, bool) and cap > 0):
+        raise InputError(f"bootstrap.depth_cap_mm must be a positive depth in mm or null, got {cap!r}",
+                         fix="pass bootstrap.depth_cap_mm=30 (or null for uncapped metrics only)")
     L.seed_everything(int(cfg.seed), workers=True)
     info = pipeline.load_sequences(cfg)
     pipeline.check_fold(int(cfg.fold), info.patients_with_ct)

@@ -110,6 +110,16 @@ def test_unknown_fold_is_a_clear_error(debug_run):
         run(train_cfg(root, "fold=5"))
 
 
+@pytest.mark.parametrize("cap", ["0", "-5", "abc"])
+def test_bad_depth_cap_is_a_clear_error_before_any_work(tmp_path, cap):
+    from endorecon.tasks.train import run
+
+    cfg = _compose("train", ["debug=fast", f"paths.root_dir={tmp_path}", f"bootstrap.depth_cap_mm={cap}"])
+    with pytest.raises(InputError, match="depth_cap_mm"):
+        run(cfg)
+    assert not any(tmp_path.iterdir())  # nothing generated or trained
+
+
 def test_cli_shows_composed_config():
     out = subprocess.run([sys.executable, "train.py", "fold=3", "iteration=2", "--cfg", "job"], cwd=ROOT,
                          capture_output=True, text=True, timeout=120)
