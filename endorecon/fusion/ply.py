@@ -22,11 +22,15 @@ import open3d.core as o3c
 
 from endorecon.utils.errors import InputError
 
-__all__ = ["write_mesh_ply", "read_mesh_ply"]
+__all__ = ["write_mesh_ply", "read_mesh_ply", "boundary_trim_rings_of"]
 
 
-def write_mesh_ply(path: str | Path, mesh: o3d.t.geometry.TriangleMesh) -> Path:
-    """Write ``mesh`` (positions, optional normals/colors [0, 1]/std (V, 1), triangles) to ``path``."""
+TRIM_COMMENT = "comment boundary_trim_rings "
+
+
+def write_mesh_ply(path: str | Path, mesh: o3d.t.geometry.TriangleMesh, boundary_trim_rings: int | None = None) -> Path:
+    """Write ``mesh`` (positions, optional normals/colors [0, 1]/std (V, 1), triangles) to ``path``;
+    ``boundary_trim_rings`` (if given) is recorded in the header (:func:`boundary_trim_rings_of`)."""
     path = Path(path)
     v = mesh.vertex
     pos = v.positions.cpu().numpy().astype(np.float32) if "positions" in v else np.zeros((0, 3), np.float32)
@@ -52,8 +56,10 @@ def write_mesh_ply(path: str | Path, mesh: o3d.t.geometry.TriangleMesh) -> Path:
     face["n"] = 3
     face["i"] = tri
     ptype = {"<f4": "float", "u1": "uchar"}
-    header = ["ply", "format binary_little_endian 1.0", "comment endorecon fused mesh; std = per-vertex depth std",
-              f"element vertex {n}"]
+    header = ["ply", "format binary_little_endian 1.0", "comment endorecon fused mesh; std = per-vertex depth std"]
+    if boundary_trim_rings is not None:
+        header.append(f"{TRIM_COMMENT}{int(boundary_trim_rings)}")
+    header.append(f"element vertex {n}")
     header += [f"property {ptype[t]} {name}" for name, t in fields]
     header += [f"element face {len(tri)}", "property list uchar int vertex_indices", "end_header"]
     with open(path, "wb") as f:
@@ -61,6 +67,15 @@ def write_mesh_ply(path: str | Path, mesh: o3d.t.geometry.TriangleMesh) -> Path:
         f.write(vert.tobytes())
         f.write(face.tobytes())
     return path
+
+
+def boundary_trim_rings_of(path: str | Path) -> int:
+    """Boundary rings trimmed off the mesh at ``path`` when it was saved (0 if its header does not say)."""
+    head = Path(path).read_bytes()[:4096].split(b"end_header")[0].decode("ascii", "replace")
+    for line in head.splitlines():
+        if line.startswith(TRIM_COMMENT):
+            return int(line[len(TRIM_COMMENT):])
+    return 0
 
 
 def read_mesh_ply(path: str | Path) -> o3d.t.geometry.TriangleMesh:

@@ -65,6 +65,7 @@ def build_fusion(cfg_fusion, median_depth: float | None = None) -> AdaptiveTSDF 
         mesh_weight_threshold=float(_get(cfg_fusion, "mesh_weight_threshold", 1.0)),
         device=str(_get(cfg_fusion, "device", "auto")),
         min_component_fraction=float(_get(cfg_fusion, "min_component_fraction", 0.0)),
+        boundary_trim_rings=int(_get(cfg_fusion, "boundary_trim_rings", 0)),
     )
     if name == "adaptive":
         return AdaptiveTSDF(

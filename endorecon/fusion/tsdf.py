@@ -101,6 +101,40 @@ def drop_small_components(mesh: o3d.t.geometry.TriangleMesh, min_fraction: float
     return mesh.select_faces_by_mask(o3c.Tensor(keep, device=mesh.device))  # also drops the unused vertices
 
 
+def trim_boundary(mesh: o3d.t.geometry.TriangleMesh, rings: int) -> o3d.t.geometry.TriangleMesh:
+    """Remove ``rings`` rings of triangles along the open boundary of ``mesh``.
+
+    A triangle touching a boundary vertex (a vertex on an edge used by one triangle) goes, ``rings``
+    times over.  Marching cubes closes the surface at the edge of the observed band with triangles
+    from voxels that the frames saw only partly or at grazing angles: the least reliable ring of the
+    mesh.  A closed surface loses nothing; ``rings`` = 0 returns the mesh unchanged.
+    """
+    rings = int(rings)
+    if rings < 0:
+        raise InputError(f"fusion: boundary_trim_rings must be >= 0, got {rings}", fix="set fusion.boundary_trim_rings=1")
+    if rings == 0 or "indices" not in mesh.triangle or mesh.triangle.indices.shape[0] == 0:
+        return mesh
+    faces = mesh.triangle.indices.cpu().numpy().astype(np.int64)
+    n_vertices = int(mesh.vertex.positions.shape[0])
+    keep = np.ones(len(faces), bool)
+    for _ in range(rings):
+        f = faces[keep]
+        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        key = edges[:, 0] * n_vertices + edges[:, 1]
+        uniq, counts = np.unique(key, return_counts=True)
+        border = uniq[counts == 1]
+        if len(border) == 0:
+            break
+        on_border = np.zeros(n_vertices, bool)
+        on_border[border // n_vertices] = True
+        on_border[border % n_vertices] = True
+        idx = np.flatnonzero(keep)
+        keep[idx[on_border[f].any(axis=1)]] = False
+    if keep.all():
+        return mesh
+    return mesh.select_faces_by_mask(o3c.Tensor(keep, device=mesh.device))  # also drops the unused vertices
+
+
 class _TSDFBase:
     """Shared frame checks, block activation and mesh saving."""
 
@@ -109,7 +143,11 @@ class _TSDFBase:
 
     def __init__(self, voxel_size: float, block_resolution: int = 8, block_count: int = 20000,
                  depth_max: float = float("inf"), mesh_weight_threshold: float = 1.0, device: str = "CPU:0",
-                 min_component_fraction: float = 0.0):
+                 min_component_fraction: float = 0.0, boundary_trim_rings: int = 0):
+        if int(boundary_trim_rings) < 0:
+            raise InputError(f"fusion: boundary_trim_rings must be >= 0, got {boundary_trim_rings}",
+                             fix="set fusion.boundary_trim_rings=1 (0 keeps the boundary)")
+        self.boundary_trim_rings = int(boundary_trim_rings)
         if not 0.0 <= min_component_fraction < 1.0:
             raise InputError(f"fusion: min_component_fraction must be in [0, 1), got {min_component_fraction}",
                              fix="set fusion.min_component_fraction to e.g. 0.01 (0 keeps every piece)")
@@ -193,11 +231,15 @@ class _TSDFBase:
         return drop_small_components(mesh, self.min_component_fraction)
 
     def save_mesh(self, path: str | Path) -> Path:
-        """Extract the mesh and write it to ``path`` (PLY, atomically); returns ``path``."""
-        mesh = self.extract_mesh()
+        """Extract the mesh, trim ``boundary_trim_rings`` rings off its open boundary and write it to
+        ``path`` (PLY, atomically; the header records the trim); returns ``path``.
+
+        Only the saved product is trimmed: :meth:`extract_mesh` (simulated depth, failure detection)
+        keeps the boundary."""
+        mesh = trim_boundary(self.extract_mesh(), self.boundary_trim_rings)
         path = Path(path)
         with atomic_path(path) as tmp:
-            write_mesh_ply(tmp, mesh)
+            write_mesh_ply(tmp, mesh, boundary_trim_rings=self.boundary_trim_rings)
         return path
 
 
@@ -220,6 +262,9 @@ class AdaptiveTSDF(_TSDFBase):
         compile: run the per-voxel maths under ``torch.compile(dynamic=True)``;
             falls back to eager (with a warning) if compilation fails.
         device: Open3D device string, ``"CPU:0"``, ``"CUDA:0"`` or ``"auto"``.
+        min_component_fraction: mesh pieces with a smaller share of the triangles are dropped.
+        boundary_trim_rings: triangle rings trimmed off the open boundary of the saved mesh
+            (:func:`trim_boundary`; :meth:`extract_mesh` keeps them).
     """
 
     attributes = ("tsdf", "weight", "color", "std")
@@ -229,9 +274,9 @@ class AdaptiveTSDF(_TSDFBase):
                  trunc_min_voxels: float = 6.0, trunc_max_voxels: float = 24.0, depth_max: float = float("inf"),
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
                  std_mode: str = "propagate", compile: bool = False, device: str = "CPU:0",
-                 min_component_fraction: float = 0.0):
+                 min_component_fraction: float = 0.0, boundary_trim_rings: int = 0):
         super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
-                         min_component_fraction)
+                         min_component_fraction, boundary_trim_rings)
         if not (0 < c1 <= c2 <= 1):
             raise InputError(f"fusion: need 0 < c1 <= c2 <= 1, got c1={c1}, c2={c2}", fix="fix fusion.c1 / fusion.c2")
         if not (0 < trunc_min_voxels <= trunc_max_voxels):
@@ -367,9 +412,9 @@ class PlainTSDF(_TSDFBase):
 
     def __init__(self, voxel_size: float, trunc_voxels: float = 6.0, depth_max: float = float("inf"),
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
-                 device: str = "CPU:0", min_component_fraction: float = 0.0):
+                 device: str = "CPU:0", min_component_fraction: float = 0.0, boundary_trim_rings: int = 0):
         super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
-                         min_component_fraction)
+                         min_component_fraction, boundary_trim_rings)
         if not trunc_voxels > 0:
             raise InputError(f"fusion: trunc_voxels must be > 0, got {trunc_voxels}")
         self.trunc_voxels = float(trunc_voxels)

@@ -6,10 +6,18 @@ For the held-out patient of a fold (after ``train.py`` made its iterations):
 * ``plain_fusion``    — the same depths, poses and flags through Open3D's plain TSDF (``fusion=plain``);
 * ``no_failure_pgo``  — the same depths, adaptive fusion, SfM poses, no frame excluded;
 * ``iteration0``      — no Dense Simulation Loss: the mesh of bootstrapping iteration 0;
-* ``gt_upper_bound``  — ground-truth depth fused at ground-truth poses (what fusion alone can reach).
+* ``gt_upper_bound``  — ground-truth depth fused at ground-truth poses (what fusion alone can reach);
+* ``adapted``         — the application phase of ``reconstruct.py``: the last iteration's network adapted to
+  the held-out video by test-time self-supervision (:mod:`endorecon.tasks.adapt`; no label, no CT), then
+  failure detection, PGO and adaptive fusion from the SfM poses.  Its network has seen the held-out
+  video (not its ground truth), so it is reported beside ``full``, not in its place.
+
+Rows carry the held-out network's depth AbsRel (GT depth, per-frame median scaling) where a variant has
+network depth.
 
 Every variant is registered to the patient's CT with the same Sim(3) + ICP and
-reported with the same residual statistics.
+reported with the same residual statistics, on its mesh as the current fusion config saves it
+(:func:`configured_mesh`: meshes of older runs get the configured boundary trim first).
 """
 
 from __future__ import annotations
@@ -18,6 +26,7 @@ import copy
 import csv
 import json
 import logging
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -26,12 +35,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from endorecon.tasks import pipeline
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_write_text
+from endorecon.utils.io import atomic_path, atomic_write_text
 
 log = logging.getLogger(__name__)
 
-VARIANTS = ("full", "plain_fusion", "no_failure_pgo", "iteration0", "gt_upper_bound")
-COLUMNS = ("mean_mm", "median_mm", "p95_mm", "max_mm", "frac_below_1mm")
+VARIANTS = ("full", "plain_fusion", "no_failure_pgo", "iteration0", "gt_upper_bound", "adapted")
+COLUMNS = ("mean_mm", "median_mm", "p95_mm", "max_mm", "frac_below_1mm", "abs_rel")
 
 
 def _last_iteration(fold_dir: Path) -> int:
@@ -47,6 +56,26 @@ def _variant_cfg(cfg: DictConfig, **changes) -> DictConfig:
     for key, value in changes.items():
         OmegaConf.update(c, key, value, merge=False)
     return c
+
+
+def configured_mesh(cfg: DictConfig, mesh_path: Path, out_dir: Path) -> Path:
+    """``mesh_path`` as the current fusion config would save it: a mesh saved with fewer boundary rings
+    trimmed (``fusion.boundary_trim_rings``; older runs: 0) gets the missing rings trimmed into
+    ``out_dir/mesh_trim<k>.ply`` so that every variant of the table is measured the same way."""
+    from endorecon.fusion import boundary_trim_rings_of, read_mesh_ply, trim_boundary, write_mesh_ply
+
+    mesh_path = Path(mesh_path)
+    want, have = int(cfg.fusion.get("boundary_trim_rings", 0)), boundary_trim_rings_of(mesh_path)
+    if have >= want:
+        if have > want:
+            log.warning("%s was saved with %d boundary rings trimmed, more than the %d configured", mesh_path, have, want)
+        return mesh_path
+    out = Path(out_dir) / f"mesh_trim{want}.ply"
+    if not out.is_file():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(out) as tmp:
+            write_mesh_ply(tmp, trim_boundary(read_mesh_ply(mesh_path), want - have), boundary_trim_rings=want)
+    return out
 
 
 def fuse_ground_truth(cfg: DictConfig, data_root: Path, seq, out_path: Path, rel_std: float = 0.01) -> Path:
@@ -80,19 +109,29 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
     prepared = prepare_sequences(cfg, sfm_seqs, prev)
     module, _ = load_module(fold_dir / f"iteration={last}" / "checkpoints" / "last.ckpt")
     rows = []
-    for raw, prep in zip(tests, prepared):
+    for raw, sfm_seq, prep in zip(tests, sfm_seqs, prepared):
         slug = pipeline._slug(prep.seq.name)
         gt = load_ground_truth(info.root, raw.patient, raw.name.split("/")[-1])
         if gt.mesh_path is None:
             continue
 
-        def row(variant, ev):
+        def row(variant, ev, abs_rel=None):
             return {"patient": raw.patient, "sequence": raw.name, "variant": variant,
-                    **{k: (ev or {}).get(k) for k in COLUMNS}}
+                    **{k: (ev or {}).get(k) for k in COLUMNS}, "abs_rel": abs_rel}
 
+        abs_rel = {}
         for variant, it in (("full", last), ("iteration0", 0)):
-            m = json.loads((fold_dir / f"iteration={it}" / "metrics.json").read_text())
-            rows.append(row(variant, m.get("evaluation")))
+            it_dir = fold_dir / f"iteration={it}"
+            m = json.loads((it_dir / "metrics.json").read_text())
+            abs_rel[variant] = (m.get("depth_evaluation") or {}).get("abs_rel")
+            ev = m.get("evaluation")
+            mesh = configured_mesh(cfg, it_dir / "mesh.ply", out_dir / variant / slug)
+            if mesh != it_dir / "mesh.ply":  # saved with fewer boundary rings trimmed than configured now
+                from endorecon.data.sequence import read_poses_txt
+
+                _, poses = read_poses_txt(it_dir / "poses.txt")
+                ev = pipeline.evaluate_against_ct(info.root, prep.seq, mesh, poses, out_dir / variant / slug / "evaluation")
+            rows.append(row(variant, ev, abs_rel[variant]))
         depth = std = colors = None
         for variant, changes in (("plain_fusion", {"fusion.name": "plain"}),
                                  ("no_failure_pgo", {"failure.enabled": False, "pgo.enabled": False})):
@@ -104,13 +143,54 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
             from endorecon.data.sequence import read_poses_txt
 
             _, poses = read_poses_txt(vdir / "poses.txt")
-            rows.append(row(variant, pipeline.evaluate_against_ct(info.root, prep.seq, vdir / "mesh.ply", poses,
-                                                                  vdir / "evaluation")))
+            rows.append(row(variant, pipeline.evaluate_against_ct(info.root, prep.seq,
+                                                                  configured_mesh(cfg, vdir / "mesh.ply", vdir), poses,
+                                                                  vdir / "evaluation"), abs_rel["full"]))
+        if (cfg.get("adapt") or {}).get("enabled", True):
+            rows.append(run_adapted(cfg, module, info.root, sfm_seq, out_dir / "adapted" / slug))
         gdir = out_dir / "gt_upper_bound" / slug
-        mesh = fuse_ground_truth(cfg, info.root, raw, gdir / "mesh.ply")
+        mesh = configured_mesh(cfg, fuse_ground_truth(cfg, info.root, raw, gdir / "mesh.ply"), gdir)
         rows.append(row("gt_upper_bound", pipeline.evaluate_against_ct(info.root, raw, mesh, gt.cam_from_world,
                                                                        gdir / "evaluation")))
     return rows
+
+
+def run_adapted(cfg: DictConfig, module, data_root: Path, sfm_seq, out_dir: Path) -> dict:
+    """The ``adapted`` variant of one held-out sequence: what ``reconstruct.py`` does with a new video.
+
+    A copy of ``module`` is adapted to the sequence (SfM poses and sparse maps, no simulated depth, no
+    exclusions), its depth is scored against GT depth (``depth_metrics.json``), refined and fused from
+    the SfM poses, and the mesh registered to the CT.  Each step is skipped when its output exists."""
+    from endorecon.data.sequence import read_poses_txt
+    from endorecon.tasks import adapt
+    from endorecon.tasks.train import prepare_sequences
+
+    opts = adapt._options(cfg.get("adapt"))
+    if not opts["enabled"]:
+        raise InputError("the adapted variant needs adapt.enabled=true", fix="drop adapt.enabled=false")
+    out_dir = Path(out_dir)
+    base = prepare_sequences(cfg, [sfm_seq], None)[0]
+    metrics_path = out_dir / "depth_metrics.json"
+    if metrics_path.is_file() and json.loads(metrics_path.read_text()).get("options") != opts:
+        log.info("%s was made with other adapt options: running it again", out_dir)
+        shutil.rmtree(out_dir)
+    if not ((out_dir / "summary.json").is_file() and metrics_path.is_file()):
+        net = copy.deepcopy(module)
+        stamp = json.dumps({"fold": int(cfg.fold), "sequence": base.seq.name, "hw": [base.seq.height, base.seq.width]})
+        _, info, _ = adapt.run(cfg.get("adapt"), net, cfg.data, [base], out_dir / "adaptation", stamp)
+        depth, std, colors = pipeline.infer_depth(net, base.seq, base.cache)
+        caps = (None,) if cfg.bootstrap.get("depth_cap_mm") is None else (None, float(cfg.bootstrap.depth_cap_mm))
+        dm = pipeline.evaluate_depth(data_root, base.seq, depth, std, caps_mm=caps)
+        pipeline.refine_sequence(cfg, base.seq, base.cache, depth, std, colors, None, out_dir)
+        atomic_write_text(metrics_path, json.dumps({"depth_evaluation": dm[0], "depth_evaluation_capped": dm[-1]
+                                                    if len(dm) > 1 else None, "adaptation": info, "options": opts},
+                                                   indent=2) + "\n")
+    dm = json.loads(metrics_path.read_text())
+    _, poses = read_poses_txt(out_dir / "poses.txt")
+    ev = pipeline.evaluate_against_ct(data_root, base.seq, configured_mesh(cfg, out_dir / "mesh.ply", out_dir), poses,
+                                      out_dir / "evaluation")
+    return {"patient": sfm_seq.patient, "sequence": sfm_seq.name, "variant": "adapted",
+            **{k: (ev or {}).get(k) for k in COLUMNS}, "abs_rel": dm["depth_evaluation"]["abs_rel"]}
 
 
 def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
@@ -120,23 +200,26 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     fields = ["patient", "sequence", "variant", *COLUMNS]
     lines = [",".join(fields)]
     for r in rows:
-        lines.append(",".join("" if r[f] is None else (f"{r[f]:.4f}" if isinstance(r[f], float) else str(r[f]))
+        lines.append(",".join("" if r.get(f) is None else (f"{r[f]:.4f}" if isinstance(r[f], float) else str(r[f]))
                               for f in fields))
     csv_path = atomic_write_text(out_dir / "results.csv", "\n".join(lines) + "\n")
-    md = ["| patient | variant | mean (mm) | median (mm) | p95 (mm) | max (mm) | < 1 mm |",
-          "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+    md = ["| patient | variant | mean (mm) | median (mm) | p95 (mm) | max (mm) | < 1 mm | depth AbsRel |",
+          "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
 
     def fmt(r):
+        ar = "" if r.get("abs_rel") is None else f"{r['abs_rel']:.3f}"
         if r["mean_mm"] is None:
-            return "| {} | {} | n/a | n/a | n/a | n/a | n/a |".format(r["patient"], r["variant"])
-        return "| {} | {} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0%} |".format(
-            r["patient"], r["variant"], r["mean_mm"], r["median_mm"], r["p95_mm"], r["max_mm"], r["frac_below_1mm"])
+            return "| {} | {} | n/a | n/a | n/a | n/a | n/a | {} |".format(r["patient"], r["variant"], ar)
+        return "| {} | {} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0%} | {} |".format(
+            r["patient"], r["variant"], r["mean_mm"], r["median_mm"], r["p95_mm"], r["max_mm"], r["frac_below_1mm"],
+            ar)
 
     md += [fmt(r) for r in rows]
     for v in VARIANTS:
         vals = [r for r in rows if r["variant"] == v and r["mean_mm"] is not None]
         if vals:
-            mean = {k: float(np.mean([r[k] for r in vals])) for k in COLUMNS}
+            mean = {k: (float(np.mean([r[k] for r in vals])) if all(r.get(k) is not None for r in vals) else None)
+                    for k in COLUMNS}
             md.append(fmt({"patient": "**mean**", "variant": v, **mean}))
     md_path = atomic_write_text(out_dir / "results.md", "\n".join(md) + "\n")
     return csv_path, md_path

@@ -1,4 +1,4 @@
-"""The reconstruct task: a new video -> SfM -> depth + std -> failures -> PGO -> fusion -> mesh + report.
+"""The reconstruct task: a new video -> SfM -> adaptation -> depth + std -> failures -> PGO -> fusion -> mesh + report.
 
 ``python reconstruct.py input=<video | frames folder | sequence folder | original-format folder>
 [intrinsics=<camera.json | fx fy cx cy file>] [mask=<png>] [ckpt=<checkpoint>]``
@@ -9,6 +9,9 @@ interrupted run resumes; a failed stage loses nothing already written)::
     frames/ + decode.json          input: video decoded to PNG frames (video input only)
     mask.png                       the valid-pixel mask used (given or estimated from the dark border)
     sfm/                           SfM stage (endorecon.sfm.stage): model/, sequence.npz, attempts.json
+    adaptation/                    test-time self-supervised adaptation (endorecon.tasks.adapt): adapted.ckpt,
+                                   adapt.json (steps, seconds, the video's loss before/after); adapt.enabled=false
+                                   skips it
     depth.npz                      network depth, std, colours at the network's resolution (+ stamp)
     reconstruction/                failure detection, dense PGO, adaptive fusion (pipeline.refine_sequence):
                                    mesh.ply, poses.txt, failures.csv, simulated_depth.npz, summary.json
@@ -306,7 +309,22 @@ def run(cfg: DictConfig) -> Path:
     from endorecon.data.sparse import build_sparse_cache
 
     cache = build_sparse_cache(small)
-    stamp = _stamp(ckpt, small)
+    timed("sparse maps", t0)
+
+    # Test-time self-supervised adaptation on this video (endorecon/tasks/adapt.py); the depth maps are
+    # then stamped with the adapted checkpoint, so a new adaptation means a new inference.
+    from endorecon.data.datamodule import PreparedSequence
+    from endorecon.tasks import adapt
+
+    t0 = time.perf_counter()
+    adapted, adapt_info, skipped = adapt.run(cfg.get("adapt"), module, cfg.get("data"),
+                                             [PreparedSequence(seq=small, cache=cache)], out / "adaptation",
+                                             _stamp(ckpt, small))
+    if adapted is not None:
+        timed("adaptation", t0, skipped=skipped)
+
+    t0 = time.perf_counter()
+    stamp = _stamp(adapted or ckpt, small)
     depth, std, colors, skipped = infer_stage(module, small, cache, stamp, out)
     timed("inference", t0, skipped=skipped)
     log.info("depth + std at %dx%d (network input)", small.width, small.height)
@@ -326,7 +344,7 @@ def run(cfg: DictConfig) -> Path:
         shutil.copyfile(rec / "mesh.ply", tmp)
 
     t0 = time.perf_counter()
-    report = write_report(out, small, summary, depth, std, colors, stages, ckpt, cfg)
+    report = write_report(out, small, summary, depth, std, colors, stages, ckpt, cfg, adapt_info)
     log.info("mesh: %s\nreport: %s", out / "mesh.ply", report)
     return out
 
@@ -371,7 +389,7 @@ def save_depth_std_png(path: Path, seq: Sequence, depth, std, colors, n: int = 4
 
 
 def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, stages: dict, ckpt,
-                 cfg: DictConfig | None = None) -> Path:
+                 cfg: DictConfig | None = None, adapt_info: dict | None = None) -> Path:
     """``report.md`` with per-stage timings, flagged frames, and PNGs (depth/std samples, mesh preview)."""
     t0 = time.perf_counter()
     save_depth_std_png(out / "depth_std.png", seq, depth, std, colors)
@@ -404,6 +422,7 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         f"- flagged by failure detection: {summary['n_flagged']} {summary['flagged']}",
         f"- network input: {seq.width}x{seq.height} (window {seq.native_window} of the frames)",
         f"- checkpoint: `{ckpt}`",
+        f"- test-time adaptation: {_adapt_line(adapt_info)}",
         f"- mesh: `mesh.ply` ({mesh_info}; coloured, per-vertex std), refined poses: `reconstruction/poses.txt`, "
         f"failure metrics: `reconstruction/failures.csv`",
         f"- dense PGO: {summary.get('pgo') or 'disabled'}",
@@ -422,6 +441,15 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
     atomic_write_text(out / "timings.json", json.dumps(dict(stages=stages, refine=sub, total_s=total,
                                                             this_run_s=now), indent=2) + "\n")
     return out / "report.md"
+
+
+def _adapt_line(info: dict | None) -> str:
+    if not info:
+        return "off (adapt.enabled=false)"
+    verdict = "kept" if info.get("kept") else "**not kept** (the loss did not go down; original weights used)"
+    return (f"{info.get('steps', 0)} steps in {info.get('seconds', 0.0):.0f} s, the video's self-supervised loss "
+            f"{info.get('loss_before', float('nan')):.4g} -> {info.get('loss_after', float('nan')):.4g}, {verdict} "
+            f"(`adaptation/adapt.json`)")
 
 
 def _mesh_info(path: Path) -> str:

@@ -386,3 +386,58 @@ def test_small_floating_pieces_are_dropped(cls):
     assert (np.abs(cleaned[:, 2] - 1.0) < 0.1).sum() == plane.sum()
     with pytest.raises(InputError, match="min_component_fraction"):
         cls(voxel, min_component_fraction=1.5, **kw)
+
+
+def _grid_mesh(n: int) -> o3d.t.geometry.TriangleMesh:
+    """An n x n vertex grid in the z = 0 plane, two triangles per cell."""
+    v = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), -1).reshape(-1, 2)
+    verts = np.concatenate([v, np.zeros((len(v), 1))], 1).astype(np.float32)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([b, d, c], 1)]).astype(np.int64)
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(verts)
+    mesh.triangle.indices = o3d.core.Tensor(faces)
+    return mesh
+
+
+def test_trim_boundary_removes_rings_of_an_open_grid_and_nothing_of_a_closed_mesh():
+    from endorecon.fusion import trim_boundary
+
+    n = 10
+    grid = _grid_mesh(n)
+    for rings in (1, 2, 3):
+        out = trim_boundary(grid, rings)
+        pos = out.vertex.positions.numpy()
+        # k rings off an n x n grid leave the (n - 2k) x (n - 2k) vertex grid inside
+        assert len(pos) == (n - 2 * rings) ** 2
+        assert pos[:, :2].min() == rings and pos[:, :2].max() == n - 1 - rings
+        assert len(out.triangle.indices) == 2 * (n - 1 - 2 * rings) ** 2
+    assert trim_boundary(grid, 0) is grid
+    assert len(trim_boundary(grid, 6).triangle.indices) == 0  # more rings than the grid has: nothing left
+    sphere = o3d.t.geometry.TriangleMesh.from_legacy(o3d.geometry.TriangleMesh.create_sphere(1.0, 10))
+    assert len(trim_boundary(sphere, 2).triangle.indices) == len(sphere.triangle.indices)
+    with pytest.raises(InputError, match="boundary_trim_rings"):
+        trim_boundary(grid, -1)
+
+
+@pytest.mark.parametrize("cls", [AdaptiveTSDF, PlainTSDF])
+def test_saved_mesh_is_trimmed_and_says_so_extracted_mesh_is_not(cls, tmp_path):
+    from endorecon.fusion import boundary_trim_rings_of
+
+    voxel = 0.02
+    poses = [look_at((0.05 * np.cos(a), 0.05 * np.sin(a), 0.0), (0.0, 0.0, 1.0)) for a in np.linspace(0, 2 * np.pi, 4, endpoint=False)]
+    depths = [plane_depth(T, (0.0, 0.0, 1.0), 1.0) for T in poses]
+    stds = [np.full((H, W), 0.2 * voxel) for _ in poses]
+    kw = {"compile": False} if cls is AdaptiveTSDF else {}
+    counts = {}
+    for rings in (0, 1):
+        vol = cls(voxel, boundary_trim_rings=rings, **kw)
+        integrate_all(vol, depths, stds, poses)
+        path = vol.save_mesh(tmp_path / f"mesh{rings}.ply")
+        assert boundary_trim_rings_of(path) == rings
+        counts[rings] = (len(read_mesh_ply(path).triangle.indices), len(vol.extract_mesh().triangle.indices))
+    assert counts[0][0] == counts[0][1] == counts[1][1]  # extraction (simulated depth) keeps the boundary
+    assert 0 < counts[1][0] < counts[0][0]
+    with pytest.raises(InputError, match="boundary_trim_rings"):
+        cls(voxel, boundary_trim_rings=-1, **kw)

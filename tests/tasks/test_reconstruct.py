@@ -31,7 +31,8 @@ def compose(*overrides: str):
 
 def recon_cfg(run_dir: Path, *extra: str):
     return compose(f"paths.root_dir='{run_dir.parent}'", f"paths.run_dir='{run_dir}'", "fusion.compile=false",
-                   "pgo.iterations=3", "pgo.progress=false", *extra)
+                   "pgo.iterations=3", "pgo.progress=false", "adapt.epochs=1", "adapt.batches_per_epoch=2",
+                   "adapt.eval_batches=1", "data.num_workers=0", *extra)
 
 
 def save_ckpt(path: Path, net: dict, weights_of: dict | None = None, train_hw=None) -> Path:
@@ -247,7 +248,8 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     run_dir = tmp_path / "run"
     cfg = recon_cfg(run_dir, f"input={video}", f"intrinsics={camera}", f"ckpt={tiny_ckpt}", "sfm.allow_partial=true")
     R.run(cfg)
-    for name in ("frames/decode.json", "mask.png", "sfm/sequence.npz", "depth.npz", "mesh.ply", "report.md",
+    for name in ("frames/decode.json", "mask.png", "sfm/sequence.npz", "adaptation/adapted.ckpt",
+                 "adaptation/adapt.json", "depth.npz", "mesh.ply", "report.md",
                  "depth_std.png", "mesh_preview.png", "timings.json", "reconstruction/poses.txt",
                  "reconstruction/failures.csv", "reconstruction/summary.json"):
         assert (run_dir / name).is_file(), name
@@ -256,8 +258,9 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     mesh = read_mesh_ply(run_dir / "mesh.ply")
     assert len(mesh.triangle.indices) > 100 and "std" in mesh.vertex and "colors" in mesh.vertex
     report = (run_dir / "report.md").read_text()
-    for stage in ("input", "sfm", "inference", "dense PGO", "fusion again", "**total**"):
+    for stage in ("input", "sfm", "adaptation", "inference", "dense PGO", "fusion again", "**total**"):
         assert stage in report
+    assert "test-time adaptation: 2 steps" in report
     first = json.loads((run_dir / "timings.json").read_text())["stages"]
     assert not any(s["skipped"] for s in first.values())
     mesh_bytes = (run_dir / "mesh.ply").read_bytes()
@@ -273,11 +276,14 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     monkeypatch.setattr(video_mod, "_decoder", forbidden)
     monkeypatch.setattr(endorecon.sfm.colmap, "run_mapping", forbidden)
     monkeypatch.setattr(R.pipeline, "infer_depth", forbidden)
+    import endorecon.tasks.adapt
+
+    monkeypatch.setattr(endorecon.tasks.adapt, "adapt_module", forbidden)
     monkeypatch.setattr(R.pipeline, "fuse_sequence", forbidden)
     monkeypatch.setattr(endorecon.pgo, "optimize_poses", forbidden)
     R.run(cfg)
     second = json.loads((run_dir / "timings.json").read_text())["stages"]
-    for name in ("input", "sfm", "inference", "failure detection + PGO + fusion"):
+    for name in ("input", "sfm", "adaptation", "inference", "failure detection + PGO + fusion"):
         assert second[name]["skipped"], name
         assert second[name]["seconds"] == pytest.approx(first[name]["seconds"])  # the report keeps the real cost
     assert (run_dir / "mesh.ply").read_bytes() == mesh_bytes

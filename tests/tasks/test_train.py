@@ -76,6 +76,29 @@ def test_two_iterations_end_to_end(debug_run):
 
 
 @pytest.mark.slow
+def test_results_table_of_the_debug_fold(debug_run, tmp_path):
+    """benchmarks/paper_table.py's per-fold work on the debug run: every variant, the adapted one included."""
+    from endorecon.tasks import ablation
+
+    fold_dir, _ = debug_run
+    cfg = train_cfg(fold_dir.parents[2], "fold=0", "iteration=1")
+    rows = ablation.run_fold(cfg, fold_dir, tmp_path / "fold=0")
+    assert [r["variant"] for r in rows] == ["full", "iteration0", "plain_fusion", "no_failure_pgo", "adapted",
+                                           "gt_upper_bound"]
+    for r in rows:
+        assert r["patient"] == 0 and r["mean_mm"] is not None and 0 <= r["mean_mm"] <= r["max_mm"], r
+    by = {r["variant"]: r for r in rows}
+    assert by["gt_upper_bound"]["mean_mm"] < 0.2  # GT depth at GT poses fuses almost exactly
+    assert by["gt_upper_bound"]["abs_rel"] is None and 0 < by["adapted"]["abs_rel"] < 1
+    a = json.loads((tmp_path / "fold=0" / "adapted" / "patient_00__seq_00" / "adaptation" / "adapt.json").read_text())
+    assert a["steps"] == 2 and np.isfinite(a["loss_before"])  # debug: 1 epoch x 2 batches
+    csv_path, md_path = ablation.write_table(rows, tmp_path)
+    md = md_path.read_text()
+    assert "| **mean** | adapted |" in md and "depth AbsRel" in md
+    assert len(csv_path.read_text().splitlines()) == 1 + len(rows)
+
+
+@pytest.mark.slow
 def test_complete_iterations_are_skipped(debug_run, monkeypatch):
     from endorecon.tasks import train
 
