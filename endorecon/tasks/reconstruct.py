@@ -446,6 +446,8 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
 def _adapt_line(info: dict | None) -> str:
     if not info:
         return "off (adapt.enabled=false)"
+    if not info.get("steps"):
+        return "no step (adapt.epochs=0): the checkpoint's weights"
     verdict = "kept" if info.get("kept") else "**not kept** (the loss did not go down; original weights used)"
     return (f"{info.get('steps', 0)} steps in {info.get('seconds', 0.0):.0f} s, the video's self-supervised loss "
             f"{info.get('loss_before', float('nan')):.4g} -> {info.get('loss_after', float('nan')):.4g}, {verdict} "
