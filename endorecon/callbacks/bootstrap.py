@@ -61,10 +61,8 @@ class BootstrapCallback(L.Callback):
                 depth, std, colors = pipeline.infer_depth(pl_module, seq, prep.cache)
                 summary = pipeline.refine_sequence(cfg, seq, prep.cache, depth, std, colors, prep.excluded, sdir)
                 if held_out and cfg.bootstrap.evaluate and depth_eval is None:
-                    cap = cfg.bootstrap.get("depth_cap_mm")
-                    caps = (None,) if cap is None else (None, float(cap))
-                    depth_eval, *capped = pipeline.evaluate_depth(self.info.root, seq, depth, std, caps)
-                    depth_eval_capped = capped[0] if capped else None
+                    depth_eval, depth_eval_capped = pipeline.evaluate_depth_with_cap(
+                        self.info.root, seq, depth, std, cfg.bootstrap.get("depth_cap_mm"))
             summaries.append(summary)
             csv = (sdir / "failures.csv").read_text().splitlines()
             rows += [f"{seq.name},{line}" for line in csv[1:]]

@@ -101,6 +101,13 @@ def drop_small_components(mesh: o3d.t.geometry.TriangleMesh, min_fraction: float
     return mesh.select_faces_by_mask(o3c.Tensor(keep, device=mesh.device))  # also drops the unused vertices
 
 
+def _check_trim_rings(rings) -> int:
+    if int(rings) < 0:
+        raise InputError(f"fusion: boundary_trim_rings must be >= 0, got {rings}",
+                         fix="set fusion.boundary_trim_rings=1 (0 keeps the boundary)")
+    return int(rings)
+
+
 def trim_boundary(mesh: o3d.t.geometry.TriangleMesh, rings: int) -> o3d.t.geometry.TriangleMesh:
     """Remove ``rings`` rings of triangles along the open boundary of ``mesh``.
 
@@ -109,9 +116,7 @@ def trim_boundary(mesh: o3d.t.geometry.TriangleMesh, rings: int) -> o3d.t.geomet
     from voxels that the frames saw only partly or at grazing angles: the least reliable ring of the
     mesh.  A closed surface loses nothing; ``rings`` = 0 returns the mesh unchanged.
     """
-    rings = int(rings)
-    if rings < 0:
-        raise InputError(f"fusion: boundary_trim_rings must be >= 0, got {rings}", fix="set fusion.boundary_trim_rings=1")
+    rings = _check_trim_rings(rings)
     if rings == 0 or "indices" not in mesh.triangle or mesh.triangle.indices.shape[0] == 0:
         return mesh
     faces = mesh.triangle.indices.cpu().numpy().astype(np.int64)
@@ -144,10 +149,7 @@ class _TSDFBase:
     def __init__(self, voxel_size: float, block_resolution: int = 8, block_count: int = 20000,
                  depth_max: float = float("inf"), mesh_weight_threshold: float = 1.0, device: str = "CPU:0",
                  min_component_fraction: float = 0.0, boundary_trim_rings: int = 0):
-        if int(boundary_trim_rings) < 0:
-            raise InputError(f"fusion: boundary_trim_rings must be >= 0, got {boundary_trim_rings}",
-                             fix="set fusion.boundary_trim_rings=1 (0 keeps the boundary)")
-        self.boundary_trim_rings = int(boundary_trim_rings)
+        self.boundary_trim_rings = _check_trim_rings(boundary_trim_rings)  # before any work, not at saving
         if not 0.0 <= min_component_fraction < 1.0:
             raise InputError(f"fusion: min_component_fraction must be in [0, 1), got {min_component_fraction}",
                              fix="set fusion.min_component_fraction to e.g. 0.01 (0 keeps every piece)")

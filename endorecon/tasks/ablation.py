@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from endorecon.data.sequence import read_poses_txt
 from endorecon.tasks import pipeline
 from endorecon.utils.errors import InputError
 from endorecon.utils.io import atomic_path, atomic_write_text
@@ -56,6 +57,12 @@ def _variant_cfg(cfg: DictConfig, **changes) -> DictConfig:
     for key, value in changes.items():
         OmegaConf.update(c, key, value, merge=False)
     return c
+
+
+def _row(seq, variant: str, ev: dict | None, abs_rel: float | None = None) -> dict:
+    """One table row: the residual statistics of ``ev`` (None: n/a) and the depth AbsRel."""
+    return {"patient": seq.patient, "sequence": seq.name, "variant": variant,
+            **{k: (ev or {}).get(k) for k in COLUMNS}, "abs_rel": abs_rel}
 
 
 def configured_mesh(cfg: DictConfig, mesh_path: Path, out_dir: Path) -> Path:
@@ -115,10 +122,6 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
         if gt.mesh_path is None:
             continue
 
-        def row(variant, ev, abs_rel=None):
-            return {"patient": raw.patient, "sequence": raw.name, "variant": variant,
-                    **{k: (ev or {}).get(k) for k in COLUMNS}, "abs_rel": abs_rel}
-
         abs_rel = {}
         for variant, it in (("full", last), ("iteration0", 0)):
             it_dir = fold_dir / f"iteration={it}"
@@ -127,11 +130,9 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
             ev = m.get("evaluation")
             mesh = configured_mesh(cfg, it_dir / "mesh.ply", out_dir / variant / slug)
             if mesh != it_dir / "mesh.ply":  # saved with fewer boundary rings trimmed than configured now
-                from endorecon.data.sequence import read_poses_txt
-
                 _, poses = read_poses_txt(it_dir / "poses.txt")
                 ev = pipeline.evaluate_against_ct(info.root, prep.seq, mesh, poses, out_dir / variant / slug / "evaluation")
-            rows.append(row(variant, ev, abs_rel[variant]))
+            rows.append(_row(raw, variant, ev, abs_rel[variant]))
         depth = std = colors = None
         for variant, changes in (("plain_fusion", {"fusion.name": "plain"}),
                                  ("no_failure_pgo", {"failure.enabled": False, "pgo.enabled": False})):
@@ -140,17 +141,15 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
                 depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)
             pipeline.refine_sequence(_variant_cfg(cfg, **changes), prep.seq, prep.cache, depth, std, colors,
                                      None if variant == "no_failure_pgo" else prep.excluded, vdir)
-            from endorecon.data.sequence import read_poses_txt
-
             _, poses = read_poses_txt(vdir / "poses.txt")
-            rows.append(row(variant, pipeline.evaluate_against_ct(info.root, prep.seq,
+            rows.append(_row(raw, variant, pipeline.evaluate_against_ct(info.root, prep.seq,
                                                                   configured_mesh(cfg, vdir / "mesh.ply", vdir), poses,
                                                                   vdir / "evaluation"), abs_rel["full"]))
         if (cfg.get("adapt") or {}).get("enabled", True):
             rows.append(run_adapted(cfg, module, info.root, sfm_seq, out_dir / "adapted" / slug))
         gdir = out_dir / "gt_upper_bound" / slug
         mesh = configured_mesh(cfg, fuse_ground_truth(cfg, info.root, raw, gdir / "mesh.ply"), gdir)
-        rows.append(row("gt_upper_bound", pipeline.evaluate_against_ct(info.root, raw, mesh, gt.cam_from_world,
+        rows.append(_row(raw, "gt_upper_bound", pipeline.evaluate_against_ct(info.root, raw, mesh, gt.cam_from_world,
                                                                        gdir / "evaluation")))
     return rows
 
@@ -161,7 +160,6 @@ def run_adapted(cfg: DictConfig, module, data_root: Path, sfm_seq, out_dir: Path
     A copy of ``module`` is adapted to the sequence (SfM poses and sparse maps, no simulated depth, no
     exclusions), its depth is scored against GT depth (``depth_metrics.json``), refined and fused from
     the SfM poses, and the mesh registered to the CT.  Each step is skipped when its output exists."""
-    from endorecon.data.sequence import read_poses_txt
     from endorecon.tasks import adapt
     from endorecon.tasks.train import prepare_sequences
 
@@ -179,18 +177,16 @@ def run_adapted(cfg: DictConfig, module, data_root: Path, sfm_seq, out_dir: Path
         stamp = json.dumps({"fold": int(cfg.fold), "sequence": base.seq.name, "hw": [base.seq.height, base.seq.width]})
         _, info, _ = adapt.run(cfg.get("adapt"), net, cfg.data, [base], out_dir / "adaptation", stamp)
         depth, std, colors = pipeline.infer_depth(net, base.seq, base.cache)
-        caps = (None,) if cfg.bootstrap.get("depth_cap_mm") is None else (None, float(cfg.bootstrap.depth_cap_mm))
-        dm = pipeline.evaluate_depth(data_root, base.seq, depth, std, caps_mm=caps)
+        uncapped, capped = pipeline.evaluate_depth_with_cap(data_root, base.seq, depth, std,
+                                                            cfg.bootstrap.get("depth_cap_mm"))
         pipeline.refine_sequence(cfg, base.seq, base.cache, depth, std, colors, None, out_dir)
-        atomic_write_text(metrics_path, json.dumps({"depth_evaluation": dm[0], "depth_evaluation_capped": dm[-1]
-                                                    if len(dm) > 1 else None, "adaptation": info, "options": opts},
-                                                   indent=2) + "\n")
+        atomic_write_text(metrics_path, json.dumps({"depth_evaluation": uncapped, "depth_evaluation_capped": capped,
+                                                    "adaptation": info, "options": opts}, indent=2) + "\n")
     dm = json.loads(metrics_path.read_text())
     _, poses = read_poses_txt(out_dir / "poses.txt")
     ev = pipeline.evaluate_against_ct(data_root, base.seq, configured_mesh(cfg, out_dir / "mesh.ply", out_dir), poses,
                                       out_dir / "evaluation")
-    return {"patient": sfm_seq.patient, "sequence": sfm_seq.name, "variant": "adapted",
-            **{k: (ev or {}).get(k) for k in COLUMNS}, "abs_rel": dm["depth_evaluation"]["abs_rel"]}
+    return _row(sfm_seq, "adapted", ev, dm["depth_evaluation"]["abs_rel"])
 
 
 def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:

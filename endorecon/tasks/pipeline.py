@@ -381,3 +381,11 @@ def evaluate_depth(data_root: Path, seq: Sequence, depth: torch.Tensor, std: tor
         out["std_error_spearman"] = std_error_spearman(stds, errs, mask)
         results.append(out)
     return results
+
+
+def evaluate_depth_with_cap(data_root: Path, seq: Sequence, depth: torch.Tensor, std: torch.Tensor,
+                            cap_mm: float | None) -> tuple[dict, dict | None]:
+    """:func:`evaluate_depth` without a cap and, when ``cap_mm`` is set (``bootstrap.depth_cap_mm``),
+    with it; returns (uncapped, capped or None)."""
+    uncapped, *capped = evaluate_depth(data_root, seq, depth, std, (None,) if cap_mm is None else (None, float(cap_mm)))
+    return uncapped, (capped[0] if capped else None)
