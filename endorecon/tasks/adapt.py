@@ -23,6 +23,7 @@ import copy
 import json
 import logging
 import math
+import pickle
 import time
 from pathlib import Path
 
@@ -182,7 +183,7 @@ def run(cfg_adapt, module, data_cfg, prepared, out_dir: Path, stamp: str) -> tup
                 log.info("adaptation: %s is complete, skipping", ckpt)
                 return ckpt, done, True
             log.info("adaptation was made for another checkpoint, video or options: adapting again")
-        except (OSError, ValueError, KeyError, RuntimeError) as e:
+        except (OSError, ValueError, KeyError, RuntimeError, EOFError, pickle.UnpicklingError) as e:  # corrupt output
             log.warning("unreadable adaptation output %s (%s): adapting again", out_dir, e)
     out_dir.mkdir(parents=True, exist_ok=True)
     info = adapt_module(module, data_cfg, prepared, opts)

@@ -143,3 +143,13 @@ def test_config_group_matches_the_code_defaults():
         with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
             cfg = compose(config_name=name)
         assert adapt._options(cfg.adapt) == adapt.DEFAULTS, name
+
+
+def test_corrupt_adapted_checkpoint_is_adapted_again(prepared, tmp_path):
+    out = tmp_path / "adaptation"
+    ckpt, _, _ = adapt.run(FAST, module(), DATA, prepared, out, "s")
+    ckpt.write_bytes(b"not a checkpoint")  # e.g. a disk full while copying the run dir
+    m = module()
+    ckpt2, info, skipped = adapt.run(FAST, m, DATA, prepared, out, "s")
+    assert not skipped and info["steps"] == FAST["epochs"] * FAST["batches_per_epoch"]
+    assert all(torch.equal(torch.load(ckpt2, weights_only=False)["state_dict"][k], v) for k, v in m.state_dict().items())
