@@ -9,7 +9,7 @@
 from endorecon.fusion.kernel import averaging_rate, integrate_blocks, truncation
 from endorecon.fusion.ply import boundary_trim_rings_of, read_mesh_ply, write_mesh_ply
 from endorecon.fusion.run import build_fusion, fuse_frames, median_valid_depth
-from endorecon.fusion.tsdf import AdaptiveTSDF, PlainTSDF, drop_small_components, trim_boundary
+from endorecon.fusion.tsdf import AdaptiveTSDF, PlainTSDF, drop_small_components, pixel_band_blocks, trim_boundary
 
 __all__ = [
     "AdaptiveTSDF",
@@ -24,5 +24,6 @@ __all__ = [
     "write_mesh_ply",
     "boundary_trim_rings_of",
     "drop_small_components",
+    "pixel_band_blocks",
     "trim_boundary",
 ]

@@ -32,7 +32,7 @@ from endorecon.fusion.ply import write_mesh_ply
 from endorecon.utils.errors import InputError
 from endorecon.utils.io import atomic_path
 
-__all__ = ["AdaptiveTSDF", "PlainTSDF", "resolve_device"]
+__all__ = ["AdaptiveTSDF", "PlainTSDF", "pixel_band_blocks", "resolve_device"]
 
 log = logging.getLogger(__name__)
 
@@ -140,6 +140,37 @@ def trim_boundary(mesh: o3d.t.geometry.TriangleMesh, rings: int) -> o3d.t.geomet
     return mesh.select_faces_by_mask(o3c.Tensor(keep, device=mesh.device))  # also drops the unused vertices
 
 
+def pixel_band_blocks(depth: torch.Tensor, K: torch.Tensor, cam_from_world: torch.Tensor, trunc: float,
+                      block_size: float) -> torch.Tensor:
+    """Hash-map blocks that the truncation band of a depth map passes through, at every usable pixel.
+
+    Each pixel with depth z > 0 is walked along its ray from z - trunc to z + trunc (z-depth, as the TSDF
+    measures it) in steps of at most a quarter block.
+
+    Args:
+        depth: (H, W) z-depth, 0 = unusable.
+        K: (3, 3) pixel-centre intrinsics.  cam_from_world: (4, 4).
+        trunc: half-width of the band (depth units).  block_size: block edge (voxel size x resolution).
+    Returns:
+        (M, 3) int32 unique block coordinates (M = 0 when no pixel is usable).
+    """
+    v, u = torch.nonzero(depth > 0, as_tuple=True)
+    if len(v) == 0:
+        return torch.zeros((0, 3), dtype=torch.int32)
+    z = depth[v, u].to(torch.float64).cpu()
+    K, T = K.to(torch.float64).cpu(), cam_from_world.to(torch.float64).cpu()
+    x = (u.cpu().to(torch.float64) - K[0, 2]) / K[0, 0]
+    y = (v.cpu().to(torch.float64) - K[1, 2]) / K[1, 1]
+    rays = torch.stack([x, y, torch.ones_like(x)], -1)  # at z = 1
+    n = int(np.ceil(2 * trunc / (0.25 * block_size))) + 1
+    offsets = torch.linspace(-trunc, trunc, n, dtype=torch.float64)
+    zs = (z[:, None] + offsets[None]).clamp_min(0.0)  # (P, n)
+    p_cam = rays[:, None, :] * zs[..., None]  # (P, n, 3)
+    R, t = T[:3, :3], T[:3, 3]
+    p_world = (p_cam - t) @ R  # R^T (p - t), row vectors
+    return torch.unique(torch.floor(p_world.reshape(-1, 3) / block_size).to(torch.int32), dim=0)
+
+
 class _TSDFBase:
     """Shared frame checks, block activation and mesh saving."""
 
@@ -216,11 +247,23 @@ class _TSDFBase:
         Kc[1, 2] += 0.5
         return Kc
 
-    def _touch_blocks(self, depth: torch.Tensor, Kc: np.ndarray, T: np.ndarray, trunc_voxels: float) -> o3c.Tensor:
+    def _touch_blocks(self, depth: torch.Tensor, K: np.ndarray, T: np.ndarray, trunc_voxels: float) -> o3c.Tensor:
+        """Blocks of the truncation band of a cleaned depth map (0 = unusable), (M, 3) int32.
+
+        Open3D's ``compute_unique_block_coordinates`` looks at every 4th pixel only; when that finds no
+        block although the frame has usable pixels (a few pixels left after ``depth_max``), it raises.
+        Then the band is walked at every usable pixel instead (:func:`pixel_band_blocks`)."""
         img = o3d.t.geometry.Image(_o3c_from_torch(depth))
         dmax = self.depth_max if np.isfinite(self.depth_max) else 1e30
-        return self.vbg.compute_unique_block_coordinates(
-            img, o3c.Tensor(Kc), o3c.Tensor(T), 1.0, dmax, float(trunc_voxels))
+        try:
+            return self.vbg.compute_unique_block_coordinates(
+                img, o3c.Tensor(self._corner_K(K)), o3c.Tensor(T), 1.0, dmax, float(trunc_voxels))
+        except RuntimeError as e:
+            if "No block is touched" not in str(e):
+                raise
+        bc = pixel_band_blocks(depth, torch.as_tensor(K, dtype=torch.float64), torch.as_tensor(T, dtype=torch.float64),
+                               float(trunc_voxels) * self.voxel_size, self.voxel_size * self.block_resolution)
+        return _o3c_from_torch(bc.to(self.tdevice).contiguous())
 
     # ---- mesh ----------------------------------------------------------
     def extract_mesh(self) -> o3d.t.geometry.TriangleMesh:
@@ -330,7 +373,7 @@ class AdaptiveTSDF(_TSDFBase):
         if widest <= 0:  # no usable pixel
             return
         # the touched band must cover the widest truncation of this frame
-        bc = self._touch_blocks(depth, self._corner_K(K), T, widest / self.voxel_size)
+        bc = self._touch_blocks(depth, K, T, widest / self.voxel_size)
         if bc.shape[0] == 0:
             return
         hm = self.vbg.hashmap()
@@ -436,7 +479,7 @@ class PlainTSDF(_TSDFBase):
         Tt = o3c.Tensor(T)
         img = o3d.t.geometry.Image(_o3c_from_torch(depth))
         dmax = self.depth_max if np.isfinite(self.depth_max) else 1e30
-        bc = self.vbg.compute_unique_block_coordinates(img, Kc, Tt, 1.0, dmax, self.trunc_voxels)
+        bc = self._touch_blocks(depth, K, T, self.trunc_voxels)
         if bc.shape[0] == 0:
             return
         self.vbg.integrate(bc, img, o3d.t.geometry.Image(_o3c_from_torch(color)), Kc, Kc, Tt, 1.0, dmax, self.trunc_voxels)

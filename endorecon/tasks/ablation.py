@@ -65,6 +65,31 @@ def _row(seq, variant: str, ev: dict | None, abs_rel: float | None = None) -> di
             **{k: (ev or {}).get(k) for k in COLUMNS}, "abs_rel": abs_rel}
 
 
+def _checkpoint_source(ckpt: Path) -> dict:
+    """What a variant's outputs were made from: the checkpoint file (path, size, mtime)."""
+    st = Path(ckpt).stat()
+    return {"checkpoint": str(Path(ckpt).resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def _reset_if_other_source(vdir: Path, source: dict) -> None:
+    """Empty ``vdir`` when its outputs came from another checkpoint (a retrained fold) or from an unknown
+    one (made before ``source.json`` was written), then record ``source`` there: the skip-if-done logic of
+    the stages below only sees that files exist, not what they were made from."""
+    vdir = Path(vdir)
+    marker = vdir / "source.json"
+    if vdir.exists():
+        try:
+            same = json.loads(marker.read_text()) == source
+        except (OSError, ValueError):
+            same = False
+        if not same:
+            log.info("%s was made from another (or an unrecorded) checkpoint: running it again", vdir)
+            shutil.rmtree(vdir)
+    if not marker.is_file():
+        vdir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(marker, json.dumps(source, indent=2) + "\n")
+
+
 def configured_mesh(cfg: DictConfig, mesh_path: Path, out_dir: Path) -> Path:
     """``mesh_path`` as the current fusion config would save it: a mesh saved with fewer boundary rings
     trimmed (``fusion.boundary_trim_rings``; older runs: 0) gets the missing rings trimmed into
@@ -114,7 +139,9 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
     sfm_seqs = [s for s in pipeline.run_sfm(cfg, info.sequences, info.root) if s.patient == int(cfg.fold)]
     prev = fold_dir / f"iteration={last - 1}" if last > 0 else None
     prepared = prepare_sequences(cfg, sfm_seqs, prev)
-    module, _ = load_module(fold_dir / f"iteration={last}" / "checkpoints" / "last.ckpt")
+    ckpt = fold_dir / f"iteration={last}" / "checkpoints" / "last.ckpt"
+    module, _ = load_module(ckpt)
+    source = _checkpoint_source(ckpt)
     rows = []
     for raw, sfm_seq, prep in zip(tests, sfm_seqs, prepared):
         slug = pipeline._slug(prep.seq.name)
@@ -137,6 +164,7 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
         for variant, changes in (("plain_fusion", {"fusion.name": "plain"}),
                                  ("no_failure_pgo", {"failure.enabled": False, "pgo.enabled": False})):
             vdir = out_dir / variant / slug
+            _reset_if_other_source(vdir, source)
             if not (vdir / "summary.json").is_file() and depth is None:
                 depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)
             pipeline.refine_sequence(_variant_cfg(cfg, **changes), prep.seq, prep.cache, depth, std, colors,
@@ -146,6 +174,7 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
                                                                   configured_mesh(cfg, vdir / "mesh.ply", vdir), poses,
                                                                   vdir / "evaluation"), abs_rel["full"]))
         if (cfg.get("adapt") or {}).get("enabled", True):
+            _reset_if_other_source(out_dir / "adapted" / slug, source)
             rows.append(run_adapted(cfg, module, info.root, sfm_seq, out_dir / "adapted" / slug))
         gdir = out_dir / "gt_upper_bound" / slug
         mesh = configured_mesh(cfg, fuse_ground_truth(cfg, info.root, raw, gdir / "mesh.ply"), gdir)
@@ -171,7 +200,9 @@ def run_adapted(cfg: DictConfig, module, data_root: Path, sfm_seq, out_dir: Path
     metrics_path = out_dir / "depth_metrics.json"
     if metrics_path.is_file() and json.loads(metrics_path.read_text()).get("options") != opts:
         log.info("%s was made with other adapt options: running it again", out_dir)
-        shutil.rmtree(out_dir)
+        for p in out_dir.iterdir():  # keep source.json (which checkpoint): that has not changed
+            if p.name != "source.json":
+                shutil.rmtree(p) if p.is_dir() else p.unlink()
     if not ((out_dir / "summary.json").is_file() and metrics_path.is_file()):
         net = copy.deepcopy(module)
         stamp = json.dumps({"fold": int(cfg.fold), "sequence": base.seq.name, "hw": [base.seq.height, base.seq.width]})

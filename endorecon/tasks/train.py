@@ -100,7 +100,7 @@ def run(cfg: DictConfig) -> float | None:
 
 
 def run_iteration(cfg: DictConfig, it: int, sfm_seqs: list[Sequence], info: pipeline.DatasetInfo) -> dict:
-    from endorecon.callbacks import BootstrapCallback
+    from endorecon.callbacks import BootstrapCallback, LastCheckpoint
     from endorecon.data.datamodule import EndoDataModule
     from endorecon.module import DepthModule
 
@@ -122,7 +122,7 @@ def run_iteration(cfg: DictConfig, it: int, sfm_seqs: list[Sequence], info: pipe
 
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c and "_target_" in c]
     for c in callbacks:
-        if isinstance(c, L.pytorch.callbacks.ModelCheckpoint):
+        if isinstance(c, (L.pytorch.callbacks.ModelCheckpoint, LastCheckpoint)):
             c.dirpath = str(it_dir / "checkpoints")
     boot = BootstrapCallback(cfg, prepared, it_dir, info)
     callbacks.append(boot)

@@ -441,3 +441,47 @@ def test_saved_mesh_is_trimmed_and_says_so_extracted_mesh_is_not(cls, tmp_path):
     assert 0 < counts[1][0] < counts[0][0]
     with pytest.raises(InputError, match="boundary_trim_rings"):
         cls(voxel, boundary_trim_rings=-1, **kw)
+
+
+# ---------------------------------------------------------------- block activation
+def test_pixel_band_blocks_cover_the_band_at_every_pixel():
+    from endorecon.fusion import pixel_band_blocks
+
+    T = look_at((0.1, -0.05, -0.3), (0.0, 0.0, 1.0))
+    d = plane_depth(T, (0.2, 0.1, -1.0), -1.0).astype(np.float32)
+    d[::3, ::2] = 0.0  # unusable pixels are not walked
+    trunc, block = 0.06, 0.08
+    got = pixel_band_blocks(torch.from_numpy(d), torch.from_numpy(K), torch.from_numpy(T), trunc, block).numpy()
+    assert got.dtype == np.int32 and len(np.unique(got, axis=0)) == len(got)
+    # brute force: every usable pixel's band sampled 40x finer
+    v, u = np.nonzero(d > 0)
+    rays = rays_cam()[v, u]
+    zs = d[v, u, None] + np.linspace(-trunc, trunc, 161)[None]
+    p_cam = rays[:, None, :] * zs[..., None]
+    p_world = (p_cam - T[:3, 3]) @ T[:3, :3]
+    ref = np.unique(np.floor(p_world.reshape(-1, 3) / block).astype(np.int32), axis=0)
+    got_set, ref_set = set(map(tuple, got)), set(map(tuple, ref))
+    assert got_set <= ref_set  # nothing outside the band
+    assert len(got_set) >= 0.98 * len(ref_set)  # a coarser walk may only miss blocks it clips at a corner
+    surface = np.unique(np.floor(((rays * d[v, u, None]) - T[:3, 3]) @ T[:3, :3] / block).astype(np.int32), axis=0)
+    assert set(map(tuple, surface)) <= got_set  # every observed surface point's block is there
+    assert len(pixel_band_blocks(torch.zeros(H, W), torch.from_numpy(K), torch.from_numpy(T), trunc, block)) == 0
+
+
+@pytest.mark.parametrize("cls", [AdaptiveTSDF, PlainTSDF])
+def test_frame_with_few_usable_pixels_is_fused(cls):
+    # Open3D's block search looks at every 4th pixel: a frame whose usable pixels all lie between them
+    # (what is left of a frame after depth_max) made it raise "No block is touched" and stopped training.
+    voxel = 0.02
+    T = np.eye(4)
+    d = np.zeros((H, W), np.float32)
+    d[21:23, 33:35] = 1.0
+    vol = cls(voxel, **({"compile": False} if cls is AdaptiveTSDF else {}))
+    img = o3d.t.geometry.Image(o3d.core.Tensor(d))
+    Kc = o3d.core.Tensor(vol._corner_K(K))
+    with pytest.raises(RuntimeError, match="No block is touched"):  # the case the fallback is for
+        vol.vbg.compute_unique_block_coordinates(img, Kc, o3d.core.Tensor(T), 1.0, 1e30, 6.0)
+    vol.integrate(d, np.full((H, W), 0.005, np.float32), None, K, T)
+    assert vol.vbg.hashmap().size() > 0
+    w = _torch_view(vol.vbg.attribute("weight"))
+    assert (w > 0).sum() > 0

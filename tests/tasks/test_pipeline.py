@@ -43,3 +43,29 @@ def test_fusing_gt_depth_at_gt_poses_lands_on_the_gt_mesh(tiny):
     assert len(v) > 100 and np.median(d) < 0.5 * voxel
     with pytest.raises(Exception, match="no registered, unflagged frame"):
         pipeline.fuse_sequence(cfg, seq, depth, depth * 0.01, colors, gt.cam_from_world, np.zeros(len(seq), bool))
+
+
+def test_ablation_variant_outputs_follow_their_checkpoint(tmp_path):
+    """A variant's cached outputs are kept only for the checkpoint they were made from."""
+    import json
+
+    from endorecon.tasks.ablation import _checkpoint_source, _reset_if_other_source
+
+    ckpt = tmp_path / "last.ckpt"
+    ckpt.write_bytes(b"weights v1")
+    src = _checkpoint_source(ckpt)
+    vdir = tmp_path / "plain_fusion" / "patient_00__seq_00"
+    _reset_if_other_source(vdir, src)
+    (vdir / "summary.json").write_text("{}")
+    _reset_if_other_source(vdir, src)  # same checkpoint: kept
+    assert (vdir / "summary.json").is_file() and json.loads((vdir / "source.json").read_text()) == src
+    ckpt.write_bytes(b"weights v2, retrained")  # another size (and mtime)
+    src2 = _checkpoint_source(ckpt)
+    assert src2 != src
+    _reset_if_other_source(vdir, src2)
+    assert not (vdir / "summary.json").exists() and json.loads((vdir / "source.json").read_text()) == src2
+    legacy = tmp_path / "adapted" / "x"  # outputs of a run before source.json existed: unknown origin
+    legacy.mkdir(parents=True)
+    (legacy / "summary.json").write_text("{}")
+    _reset_if_other_source(legacy, src2)
+    assert not (legacy / "summary.json").exists() and (legacy / "source.json").is_file()

@@ -76,6 +76,27 @@ def test_two_iterations_end_to_end(debug_run):
 
 
 @pytest.mark.slow
+def test_last_checkpoint_is_the_network_the_iteration_evaluated(debug_run):
+    """reconstruct.py, the next iteration's warm start and the results table load last.ckpt: it must hold
+    the weights whose held-out depth metrics.json reports (Lightning >= 2.6's save_last could lag)."""
+    from endorecon.tasks import pipeline
+    from endorecon.tasks.reconstruct import load_module
+    from endorecon.tasks.train import prepare_sequences
+
+    fold_dir, _ = debug_run
+    cfg = train_cfg(fold_dir.parents[2], "fold=0", "iteration=1")
+    info = pipeline.load_sequences(cfg)
+    sfm = pipeline.run_sfm(cfg, info.sequences, info.root)  # cached by the run
+    prep = [p for p in prepare_sequences(cfg, sfm, None) if p.seq.patient == 0][0]
+    for it in (0, 1):
+        module, _ = load_module(fold_dir / f"iteration={it}" / "checkpoints" / "last.ckpt")
+        depth, std, _ = pipeline.infer_depth(module, prep.seq, prep.cache)
+        got = pipeline.evaluate_depth(info.root, prep.seq, depth, std)[0]
+        recorded = json.loads((fold_dir / f"iteration={it}" / "metrics.json").read_text())["depth_evaluation"]
+        assert got["abs_rel"] == pytest.approx(recorded["abs_rel"], rel=1e-5), it
+
+
+@pytest.mark.slow
 def test_results_table_of_the_debug_fold(debug_run, tmp_path):
     """benchmarks/paper_table.py's per-fold work on the debug run: every variant, the adapted one included."""
     from endorecon.tasks import ablation
