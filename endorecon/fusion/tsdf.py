@@ -29,6 +29,7 @@ from torch.utils.dlpack import from_dlpack
 
 from endorecon.fusion.kernel import clean_frame, integrate_blocks, integrate_blocks_, local_voxel_offsets
 from endorecon.fusion.ply import write_mesh_ply
+from endorecon.geometry import invert_pose, transform_points, unproject
 from endorecon.utils.errors import InputError
 from endorecon.utils.io import atomic_path
 
@@ -154,21 +155,18 @@ def pixel_band_blocks(depth: torch.Tensor, K: torch.Tensor, cam_from_world: torc
     Returns:
         (M, 3) int32 unique block coordinates (M = 0 when no pixel is usable).
     """
+    depth = depth.to(torch.float64).cpu()
     v, u = torch.nonzero(depth > 0, as_tuple=True)
     if len(v) == 0:
         return torch.zeros((0, 3), dtype=torch.int32)
-    z = depth[v, u].to(torch.float64).cpu()
     K, T = K.to(torch.float64).cpu(), cam_from_world.to(torch.float64).cpu()
-    x = (u.cpu().to(torch.float64) - K[0, 2]) / K[0, 0]
-    y = (v.cpu().to(torch.float64) - K[1, 2]) / K[1, 1]
-    rays = torch.stack([x, y, torch.ones_like(x)], -1)  # at z = 1
+    rays = unproject(torch.ones_like(depth)[None, None], K[None])[0][:, v, u].T  # (P, 3) at z = 1
     n = int(np.ceil(2 * trunc / (0.25 * block_size))) + 1
     offsets = torch.linspace(-trunc, trunc, n, dtype=torch.float64)
-    zs = (z[:, None] + offsets[None]).clamp_min(0.0)  # (P, n)
+    zs = (depth[v, u][:, None] + offsets[None]).clamp_min(0.0)  # (P, n)
     p_cam = rays[:, None, :] * zs[..., None]  # (P, n, 3)
-    R, t = T[:3, :3], T[:3, 3]
-    p_world = (p_cam - t) @ R  # R^T (p - t), row vectors
-    return torch.unique(torch.floor(p_world.reshape(-1, 3) / block_size).to(torch.int32), dim=0)
+    p_world = transform_points(invert_pose(T[None]), p_cam.reshape(1, -1, 3))[0]
+    return torch.unique(torch.floor(p_world / block_size).to(torch.int32), dim=0)
 
 
 class _TSDFBase:
