@@ -22,7 +22,7 @@ import open3d.core as o3c
 
 from endorecon.utils.errors import InputError
 
-__all__ = ["write_mesh_ply", "read_mesh_ply", "boundary_trim_rings_of"]
+__all__ = ["write_mesh_ply", "read_mesh_ply", "boundary_trim_rings_of", "ply_header_lines"]
 
 
 TRIM_COMMENT = "comment boundary_trim_rings "
@@ -69,10 +69,16 @@ def write_mesh_ply(path: str | Path, mesh: o3d.t.geometry.TriangleMesh, boundary
     return path
 
 
+def ply_header_lines(path: str | Path, max_bytes: int = 4096) -> list[str]:
+    """The header lines of the PLY at ``path`` (before ``end_header``), reading only its first bytes."""
+    with open(path, "rb") as f:
+        head = f.read(max_bytes)
+    return head.split(b"end_header")[0].decode("ascii", "replace").splitlines()
+
+
 def boundary_trim_rings_of(path: str | Path) -> int:
     """Boundary rings trimmed off the mesh at ``path`` when it was saved (0 if its header does not say)."""
-    head = Path(path).read_bytes()[:4096].split(b"end_header")[0].decode("ascii", "replace")
-    for line in head.splitlines():
+    for line in ply_header_lines(path):
         if line.startswith(TRIM_COMMENT):
             return int(line[len(TRIM_COMMENT):])
     return 0

@@ -455,10 +455,12 @@ def _adapt_line(info: dict | None) -> str:
 
 
 def _mesh_info(path: Path) -> str:
+    from endorecon.fusion.ply import ply_header_lines
+
     try:
-        head = path.read_bytes()[:2000].split(b"end_header")[0].decode("ascii", "replace")
-        nv = next(int(ln.split()[-1]) for ln in head.splitlines() if ln.startswith("element vertex"))
-        nf = next(int(ln.split()[-1]) for ln in head.splitlines() if ln.startswith("element face"))
+        head = ply_header_lines(path)
+        nv = next(int(ln.split()[-1]) for ln in head if ln.startswith("element vertex"))
+        nf = next(int(ln.split()[-1]) for ln in head if ln.startswith("element face"))
         return f"{nv} vertices, {nf} triangles"
     except (OSError, StopIteration, ValueError):
         return "unreadable header"
