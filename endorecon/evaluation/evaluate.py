@@ -21,7 +21,7 @@ import open3d as o3d
 from endorecon.evaluation.meshes import ReferenceSurface, load_mesh, sample_points
 from endorecon.evaluation.plots import save_residual_heatmap, save_residual_histogram
 from endorecon.evaluation.registration import register
-from endorecon.utils.io import atomic_save_npz, atomic_write_text
+from endorecon.utils.io import atomic_save_npz, atomic_write_text, file_id
 
 METRICS_FILE = "metrics.json"
 HEATMAP_FILE = "residual_heatmap.png"
@@ -47,10 +47,6 @@ def residual_stats(residual_mm: np.ndarray) -> dict:
 
 
 def _fingerprint(mesh_path: Path, reference_path: Path, arrays: tuple, params: dict) -> dict:
-    def file_id(p: Path) -> dict:
-        st = p.stat()
-        return {"path": str(p.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
-
     h = hashlib.sha1()
     for a in arrays:
         h.update(b"none" if a is None else np.ascontiguousarray(a, dtype=np.float64).tobytes())

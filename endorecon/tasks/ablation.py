@@ -36,7 +36,7 @@ from omegaconf import DictConfig, OmegaConf
 from endorecon.data.sequence import read_poses_txt
 from endorecon.tasks import pipeline
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_path, atomic_write_text
+from endorecon.utils.io import atomic_path, atomic_write_text, file_id
 
 log = logging.getLogger(__name__)
 
@@ -63,12 +63,6 @@ def _row(seq, variant: str, ev: dict | None, abs_rel: float | None = None) -> di
     """One table row: the residual statistics of ``ev`` (None: n/a) and the depth AbsRel."""
     return {"patient": seq.patient, "sequence": seq.name, "variant": variant,
             **{k: (ev or {}).get(k) for k in COLUMNS}, "abs_rel": abs_rel}
-
-
-def _checkpoint_source(ckpt: Path) -> dict:
-    """What a variant's outputs were made from: the checkpoint file (path, size, mtime)."""
-    st = Path(ckpt).stat()
-    return {"checkpoint": str(Path(ckpt).resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
 
 
 def _reset_if_other_source(vdir: Path, source: dict) -> None:
@@ -141,7 +135,7 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
     prepared = prepare_sequences(cfg, sfm_seqs, prev)
     ckpt = fold_dir / f"iteration={last}" / "checkpoints" / "last.ckpt"
     module, _ = load_module(ckpt)
-    source = _checkpoint_source(ckpt)
+    source = file_id(ckpt)  # what the variants below are made from
     rows = []
     for raw, sfm_seq, prep in zip(tests, sfm_seqs, prepared):
         slug = pipeline._slug(prep.seq.name)

@@ -2,6 +2,8 @@
 
 A crash therefore never leaves a half-written file under its final name, and
 stages can treat "the output file exists" as "the output is complete".
+:func:`file_id` is what a stage records of an input file to tell, later, whether
+its output was made from that same file.
 """
 
 from __future__ import annotations
@@ -14,6 +16,12 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+
+
+def file_id(path: str | Path) -> dict:
+    """An input file's identity for skip-if-done checks: resolved path, size and mtime (ns)."""
+    st = Path(path).stat()
+    return {"path": str(Path(path).resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
 
 
 @contextlib.contextmanager

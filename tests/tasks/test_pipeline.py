@@ -49,18 +49,19 @@ def test_ablation_variant_outputs_follow_their_checkpoint(tmp_path):
     """A variant's cached outputs are kept only for the checkpoint they were made from."""
     import json
 
-    from endorecon.tasks.ablation import _checkpoint_source, _reset_if_other_source
+    from endorecon.tasks.ablation import _reset_if_other_source
+    from endorecon.utils.io import file_id
 
     ckpt = tmp_path / "last.ckpt"
     ckpt.write_bytes(b"weights v1")
-    src = _checkpoint_source(ckpt)
+    src = file_id(ckpt)
     vdir = tmp_path / "plain_fusion" / "patient_00__seq_00"
     _reset_if_other_source(vdir, src)
     (vdir / "summary.json").write_text("{}")
     _reset_if_other_source(vdir, src)  # same checkpoint: kept
     assert (vdir / "summary.json").is_file() and json.loads((vdir / "source.json").read_text()) == src
     ckpt.write_bytes(b"weights v2, retrained")  # another size (and mtime)
-    src2 = _checkpoint_source(ckpt)
+    src2 = file_id(ckpt)
     assert src2 != src
     _reset_if_other_source(vdir, src2)
     assert not (vdir / "summary.json").exists() and json.loads((vdir / "source.json").read_text()) == src2
