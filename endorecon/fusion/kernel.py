@@ -37,7 +37,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["averaging_rate", "truncation", "integrate_blocks", "integrate_blocks_", "clean_frame", "local_voxel_offsets"]
+__all__ = ["averaging_rate", "truncation", "integrate_blocks", "integrate_blocks_", "clean_frame", "erode_mask",
+           "local_voxel_offsets"]
 
 
 def averaging_rate(acc_std: Tensor, obs_std: Tensor, c1: Tensor | float, c2: Tensor | float) -> Tensor:
@@ -181,6 +182,33 @@ def integrate_blocks_(
     weight_all[buf_index] = w
     std_all[buf_index] = s
     color_all[buf_index] = c
+
+
+def erode_mask(mask: Tensor, radius_px: int) -> Tensor:
+    """Drop the pixels within ``radius_px`` (Euclidean) of an invalid pixel or of the image border.
+
+    The outer pixels of the endoscope's field of view are darkened by the black border (optics, resizing),
+    and a network reads darker as farther: fusing them biases the open edge of the mesh.
+
+    Args:
+        mask: (H, W) bool, True = valid.
+        radius_px: erosion radius in pixels (0 = unchanged).
+    Returns:
+        (H, W) bool, a subset of ``mask``.
+    """
+    if mask.ndim != 2 or mask.dtype != torch.bool:
+        raise ValueError(f"mask must be (H, W) bool, got {tuple(mask.shape)} {mask.dtype}")
+    r = int(radius_px)
+    if r < 0:
+        raise ValueError(f"radius_px must be >= 0, got {radius_px}")
+    if r == 0:
+        return mask
+    y, x = torch.meshgrid(torch.arange(-r, r + 1), torch.arange(-r, r + 1), indexing="ij")
+    disc = ((x * x + y * y) <= r * r).to(torch.float32).to(mask.device)[None, None]
+    # outside the image counts as invalid: the network sees zero padding there
+    invalid = torch.nn.functional.pad((~mask).to(torch.float32)[None, None], (r, r, r, r), value=1.0)
+    near_invalid = torch.nn.functional.conv2d(invalid, disc)[0, 0] > 0.5
+    return mask & ~near_invalid
 
 
 def clean_frame(

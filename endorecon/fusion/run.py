@@ -66,6 +66,7 @@ def build_fusion(cfg_fusion, median_depth: float | None = None) -> AdaptiveTSDF 
         device=str(_get(cfg_fusion, "device", "auto")),
         min_component_fraction=float(_get(cfg_fusion, "min_component_fraction", 0.0)),
         boundary_trim_rings=int(_get(cfg_fusion, "boundary_trim_rings", 0)),
+        mask_erode_px=_get(cfg_fusion, "mask_erode_px", 0),
     )
     if name == "adaptive":
         return AdaptiveTSDF(

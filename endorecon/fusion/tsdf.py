@@ -27,7 +27,7 @@ import open3d.core as o3c
 import torch
 from torch.utils.dlpack import from_dlpack
 
-from endorecon.fusion.kernel import clean_frame, integrate_blocks, integrate_blocks_, local_voxel_offsets
+from endorecon.fusion.kernel import clean_frame, erode_mask, integrate_blocks, integrate_blocks_, local_voxel_offsets
 from endorecon.fusion.ply import write_mesh_ply
 from endorecon.geometry import invert_pose, transform_points, unproject
 from endorecon.utils.errors import InputError
@@ -177,8 +177,16 @@ class _TSDFBase:
 
     def __init__(self, voxel_size: float, block_resolution: int = 8, block_count: int = 20000,
                  depth_max: float = float("inf"), mesh_weight_threshold: float = 1.0, device: str = "CPU:0",
-                 min_component_fraction: float = 0.0, boundary_trim_rings: int = 0):
+                 min_component_fraction: float = 0.0, boundary_trim_rings: int = 0, mask_erode_px: int = 0):
         self.boundary_trim_rings = _check_trim_rings(boundary_trim_rings)  # before any work, not at saving
+        try:
+            erode_ok = not isinstance(mask_erode_px, bool) and float(mask_erode_px).is_integer() and mask_erode_px >= 0
+        except (TypeError, ValueError):
+            erode_ok = False
+        if not erode_ok:
+            raise InputError(f"fusion: mask_erode_px must be a whole number >= 0, got {mask_erode_px}",
+                             fix="set fusion.mask_erode_px=2 (0 fuses every pixel of the mask)")
+        self.mask_erode_px = int(mask_erode_px)
         if not 0.0 <= min_component_fraction < 1.0:
             raise InputError(f"fusion: min_component_fraction must be in [0, 1), got {min_component_fraction}",
                              fix="set fusion.min_component_fraction to e.g. 0.01 (0 keeps every piece)")
@@ -227,6 +235,9 @@ class _TSDFBase:
             if mask.numel() != H * W:
                 raise InputError(f"fusion: mask has shape {tuple(mask.shape)}, depth is {(H, W)}")
             mask = mask.reshape(H, W).to(dev).bool().contiguous()
+        if self.mask_erode_px > 0:
+            full = torch.ones(H, W, dtype=torch.bool, device=dev)
+            mask = erode_mask(full if mask is None else mask, self.mask_erode_px).contiguous()
         K = np.asarray(K.cpu() if isinstance(K, torch.Tensor) else K, dtype=np.float64)
         T = np.asarray(cam_from_world.cpu() if isinstance(cam_from_world, torch.Tensor) else cam_from_world, dtype=np.float64)
         if K.shape != (3, 3):
@@ -308,6 +319,8 @@ class AdaptiveTSDF(_TSDFBase):
         min_component_fraction: mesh pieces with a smaller share of the triangles are dropped.
         boundary_trim_rings: triangle rings trimmed off the open boundary of the saved mesh
             (:func:`trim_boundary`; :meth:`extract_mesh` keeps them).
+        mask_erode_px: pixels within this radius of the mask's edge or the image border are not fused
+            (:func:`endorecon.fusion.kernel.erode_mask`).
     """
 
     attributes = ("tsdf", "weight", "color", "std")
@@ -317,9 +330,9 @@ class AdaptiveTSDF(_TSDFBase):
                  trunc_min_voxels: float = 6.0, trunc_max_voxels: float = 24.0, depth_max: float = float("inf"),
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
                  std_mode: str = "propagate", compile: bool = False, device: str = "CPU:0",
-                 min_component_fraction: float = 0.0, boundary_trim_rings: int = 0):
+                 min_component_fraction: float = 0.0, boundary_trim_rings: int = 0, mask_erode_px: int = 0):
         super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
-                         min_component_fraction, boundary_trim_rings)
+                         min_component_fraction, boundary_trim_rings, mask_erode_px)
         if not (0 < c1 <= c2 <= 1):
             raise InputError(f"fusion: need 0 < c1 <= c2 <= 1, got c1={c1}, c2={c2}", fix="fix fusion.c1 / fusion.c2")
         if not (0 < trunc_min_voxels <= trunc_max_voxels):
@@ -455,9 +468,10 @@ class PlainTSDF(_TSDFBase):
 
     def __init__(self, voxel_size: float, trunc_voxels: float = 6.0, depth_max: float = float("inf"),
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
-                 device: str = "CPU:0", min_component_fraction: float = 0.0, boundary_trim_rings: int = 0):
+                 device: str = "CPU:0", min_component_fraction: float = 0.0, boundary_trim_rings: int = 0,
+                 mask_erode_px: int = 0):
         super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
-                         min_component_fraction, boundary_trim_rings)
+                         min_component_fraction, boundary_trim_rings, mask_erode_px)
         if not trunc_voxels > 0:
             raise InputError(f"fusion: trunc_voxels must be > 0, got {trunc_voxels}")
         self.trunc_voxels = float(trunc_voxels)

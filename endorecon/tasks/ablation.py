@@ -17,7 +17,10 @@ network depth.
 
 Every variant is registered to the patient's CT with the same Sim(3) + ICP and
 reported with the same residual statistics, on its mesh as the current fusion config saves it
-(:func:`configured_mesh`: meshes of older runs get the configured boundary trim first).
+(:func:`configured_mesh`: meshes of older runs get the configured boundary trim first).  A ``full`` or
+``iteration0`` row whose training run used other fusion / failure / PGO settings is made again from
+that iteration's network with the current ones (:func:`refuse_iteration`) and marked ``*`` in the
+table; the variant dirs record what they were made from (``source.json``) and are rebuilt when it changes.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from endorecon.data.sequence import read_poses_txt
 from endorecon.tasks import pipeline
+from endorecon.tasks.pipeline import REFINE_SETTINGS, refine_settings
 from endorecon.utils.errors import InputError
 from endorecon.utils.io import atomic_path, atomic_write_text, file_id
 
@@ -65,21 +69,49 @@ def _row(seq, variant: str, ev: dict | None, abs_rel: float | None = None) -> di
             **{k: (ev or {}).get(k) for k in COLUMNS}, "abs_rel": abs_rel}
 
 
-def _reset_if_other_source(vdir: Path, source: dict) -> None:
-    """Empty ``vdir`` when its outputs came from another checkpoint (a retrained fold) or from an unknown
-    one (made before ``source.json`` was written), then record ``source`` there: the skip-if-done logic of
-    the stages below only sees that files exist, not what they were made from."""
+def recorded_settings(it_dir: Path) -> dict | None:
+    """The settings an iteration of ``train.py`` ran with (its ``.hydra/config.yaml``); None if unknown."""
+    try:
+        return refine_settings(OmegaConf.load(Path(it_dir) / ".hydra" / "config.yaml"))
+    except Exception:
+        return None
+
+
+def settings_diff(old: dict | None, new: dict) -> list[str]:
+    """``group.key: old -> new`` for every setting that differs (``["settings unrecorded"]`` when ``old`` is None)."""
+    if old is None:
+        return ["settings unrecorded"]
+    out = []
+    for g in REFINE_SETTINGS:
+        a, b = old.get(g) or {}, new.get(g) or {}
+        out += [f"{g}.{k}: {a.get(k)} -> {b.get(k)}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+    return out
+
+
+def _reset_if_other_source(vdir: Path, source: dict, keep: tuple[str, ...] = ()) -> None:
+    """Empty ``vdir`` when its outputs came from another source than ``source`` (``{"checkpoint": file id,
+    "settings": refine_settings(cfg)}``; a retrained fold, changed fusion settings, or a dir made before
+    ``source.json`` was written), then record ``source`` there: the skip-if-done logic of the stages below
+    only sees that files exist, not what they were made from.  When only the settings changed, the entries
+    named in ``keep`` stay (the adapted network: it depends on the checkpoint, not on the fusion)."""
     vdir = Path(vdir)
     marker = vdir / "source.json"
     if vdir.exists():
         try:
-            same = json.loads(marker.read_text()) == source
+            old = json.loads(marker.read_text())
         except (OSError, ValueError):
-            same = False
-        if not same:
-            log.info("%s was made from another (or an unrecorded) checkpoint: running it again", vdir)
-            shutil.rmtree(vdir)
-    if not marker.is_file():
+            old = None
+        if old != source:
+            if isinstance(old, dict) and "checkpoint" not in old and "settings" not in old:
+                old = {"checkpoint": old}  # a record of the checkpoint alone (before settings were recorded)
+            same_ckpt = isinstance(old, dict) and old.get("checkpoint") == source.get("checkpoint")
+            log.info("%s was made from another (or an unrecorded) %s: running it again", vdir,
+                     "setting" if same_ckpt else "checkpoint")
+            for p in vdir.iterdir():
+                if same_ckpt and p.name in keep:
+                    continue
+                shutil.rmtree(p) if p.is_dir() else p.unlink()
+    if not marker.is_file() or json.loads(marker.read_text()) != source:
         vdir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(marker, json.dumps(source, indent=2) + "\n")
 
@@ -135,7 +167,8 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
     prepared = prepare_sequences(cfg, sfm_seqs, prev)
     ckpt = fold_dir / f"iteration={last}" / "checkpoints" / "last.ckpt"
     module, _ = load_module(ckpt)
-    source = file_id(ckpt)  # what the variants below are made from
+    settings = refine_settings(cfg)
+    source = {"checkpoint": file_id(ckpt), "settings": settings}  # what the variants below are made from
     rows = []
     for raw, sfm_seq, prep in zip(tests, sfm_seqs, prepared):
         slug = pipeline._slug(prep.seq.name)
@@ -148,6 +181,11 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
             it_dir = fold_dir / f"iteration={it}"
             m = json.loads((it_dir / "metrics.json").read_text())
             abs_rel[variant] = (m.get("depth_evaluation") or {}).get("abs_rel")
+            diff = settings_diff(recorded_settings(it_dir), settings)
+            if diff:  # trained with other fusion / failure / PGO settings: its last stage again, as now set
+                ev = refuse_iteration(cfg, info, fold_dir, it, sfm_seq, out_dir / variant, diff)
+                rows.append({**_row(raw, variant, ev, abs_rel[variant]), "refused": diff})
+                continue
             ev = m.get("evaluation")
             mesh = configured_mesh(cfg, it_dir / "mesh.ply", out_dir / variant / slug)
             if mesh != it_dir / "mesh.ply":  # saved with fewer boundary rings trimmed than configured now
@@ -168,13 +206,48 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
                                                                   configured_mesh(cfg, vdir / "mesh.ply", vdir), poses,
                                                                   vdir / "evaluation"), abs_rel["full"]))
         if (cfg.get("adapt") or {}).get("enabled", True):
-            _reset_if_other_source(out_dir / "adapted" / slug, source)
+            _reset_if_other_source(out_dir / "adapted" / slug, source, keep=("adaptation",))
             rows.append(run_adapted(cfg, module, info.root, sfm_seq, out_dir / "adapted" / slug))
         gdir = out_dir / "gt_upper_bound" / slug
+        _reset_if_other_source(gdir, {"checkpoint": None, "settings": {"fusion": settings["fusion"]}})
         mesh = configured_mesh(cfg, fuse_ground_truth(cfg, info.root, raw, gdir / "mesh.ply"), gdir)
         rows.append(_row(raw, "gt_upper_bound", pipeline.evaluate_against_ct(info.root, raw, mesh, gt.cam_from_world,
                                                                        gdir / "evaluation")))
     return rows
+
+
+def refuse_iteration(cfg: DictConfig, info, fold_dir: Path, it: int, sfm_seq, out_root: Path,
+                     why: list[str]) -> dict:
+    """The held-out sequence's end-of-iteration stage of ``fold_dir/iteration=<it>`` run again, from that
+    iteration's network and its inputs (previous iteration's poses and flags) but with the settings of
+    ``cfg``: for a fold trained before a fusion / failure / PGO setting changed.  The earlier iterations'
+    networks were trained with the old settings; the table says which rows were made this way.
+
+    Writes ``out_root/iteration=<it>/sequences/<slug>/`` (the layout the SfM rerun of repeated failures
+    reads its previous report from; that report is the training run's) and returns the CT evaluation."""
+    from endorecon.tasks.reconstruct import load_module
+    from endorecon.tasks.train import prepare_sequences
+
+    it_dir = Path(fold_dir) / f"iteration={it}"
+    slug = pipeline._slug(sfm_seq.name)
+    vdir = Path(out_root) / f"iteration={it}" / "sequences" / slug
+    ckpt = it_dir / "checkpoints" / "last.ckpt"
+    _reset_if_other_source(vdir, {"checkpoint": file_id(ckpt), "settings": refine_settings(cfg)})
+    if not (vdir / "summary.json").is_file():
+        log.info("%s: %s ran with other settings (%s); its last stage again into %s", sfm_seq.name, it_dir,
+                 "; ".join(why), vdir)
+        prev = Path(fold_dir) / f"iteration={it - 1}" if it > 0 else None
+        if prev is not None and (prev / "sequences" / slug / "failures.csv").is_file():
+            dst = Path(out_root) / f"iteration={it - 1}" / "sequences" / slug / "failures.csv"
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(prev / "sequences" / slug / "failures.csv", dst)
+        prep = prepare_sequences(cfg, [sfm_seq], prev)[0]
+        module, _ = load_module(ckpt)
+        depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)
+        pipeline.refine_sequence(cfg, prep.seq, prep.cache, depth, std, colors, prep.excluded, vdir)
+    _, poses = read_poses_txt(vdir / "poses.txt")
+    return pipeline.evaluate_against_ct(info.root, sfm_seq, configured_mesh(cfg, vdir / "mesh.ply", vdir), poses,
+                                        vdir / "evaluation")
 
 
 def run_adapted(cfg: DictConfig, module, data_root: Path, sfm_seq, out_dir: Path) -> dict:
@@ -218,11 +291,15 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     """``results.csv`` and ``results.md``: one row per (patient, variant), then the mean over patients."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    fields = ["patient", "sequence", "variant", *COLUMNS]
-    lines = [",".join(fields)]
-    for r in rows:
-        lines.append(",".join("" if r.get(f) is None else (f"{r[f]:.4f}" if isinstance(r[f], float) else str(r[f]))
-                              for f in fields))
+    fields = ["patient", "sequence", "variant", *COLUMNS, "refused"]
+
+    def cell(r, f):
+        v = r.get(f)
+        if f == "refused":  # the settings that differed from the training run's, quoted (they hold commas)
+            return '"' + "; ".join(v).replace('"', "'") + '"' if v else ""
+        return "" if v is None else (f"{v:.4f}" if isinstance(v, float) else str(v))
+
+    lines = [",".join(fields)] + [",".join(cell(r, f) for f in fields) for r in rows]
     csv_path = atomic_write_text(out_dir / "results.csv", "\n".join(lines) + "\n")
     md = ["| patient | variant | mean (mm) | median (mm) | p95 (mm) | max (mm) | < 1 mm | depth AbsRel |",
           "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
@@ -232,15 +309,20 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
         if r["mean_mm"] is None:
             return "| {} | {} | n/a | n/a | n/a | n/a | n/a | {} |".format(r["patient"], r["variant"], ar)
         return "| {} | {} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0%} | {} |".format(
-            r["patient"], r["variant"], r["mean_mm"], r["median_mm"], r["p95_mm"], r["max_mm"], r["frac_below_1mm"],
-            ar)
+            r["patient"], r["variant"] + ("*" if r.get("refused") else ""), r["mean_mm"], r["median_mm"], r["p95_mm"],
+            r["max_mm"], r["frac_below_1mm"], ar)
 
     md += [fmt(r) for r in rows]
+    refused = sorted({d for r in rows for d in (r.get("refused") or [])})
     for v in VARIANTS:
         vals = [r for r in rows if r["variant"] == v and r["mean_mm"] is not None]
         if vals:
             mean = {k: (float(np.mean([r[k] for r in vals])) if all(r.get(k) is not None for r in vals) else None)
                     for k in COLUMNS}
             md.append(fmt({"patient": "**mean**", "variant": v, **mean}))
+    if refused:
+        md += ["", "\\* the iteration's training run used other settings (" + "; ".join(refused) + "): its last stage "
+               "(fusion, failure detection, PGO) was run again from that iteration's network with the current ones; "
+               "the networks of the earlier iterations were trained with the old settings."]
     md_path = atomic_write_text(out_dir / "results.md", "\n".join(md) + "\n")
     return csv_path, md_path

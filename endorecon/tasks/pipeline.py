@@ -215,6 +215,27 @@ def refine_poses(cfg_pgo: DictConfig, seq: Sequence, cache, depth, std):
                           _stage_cfg(cfg_pgo))
 
 
+# Config groups that the end-of-iteration stage (refine_sequence) reads, less the keys that do not change
+# its output (how it runs, not what it computes)
+REFINE_SETTINGS = ("fusion", "failure", "pgo")
+_NO_EFFECT = {"fusion": ("compile", "device"), "pgo": ("progress",)}
+
+
+def refine_settings(cfg) -> dict | None:
+    """The resolved ``fusion``/``failure``/``pgo`` settings of ``cfg`` that :func:`refine_sequence` makes its mesh
+    with (what a cached result must match); None if unreadable."""
+    try:
+        out = {}
+        for g in REFINE_SETTINGS:
+            d = OmegaConf.to_container(cfg[g], resolve=True) if g in cfg else None
+            if isinstance(d, dict):
+                d = {k: v for k, v in d.items() if k not in _NO_EFFECT.get(g, ())}
+            out[g] = d
+        return out
+    except Exception:  # an unreadable / unresolvable record counts as unknown
+        return None
+
+
 def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, excluded: np.ndarray | None,
                     out_dir: Path) -> dict:
     """One sequence's end-of-iteration work; writes ``out_dir/{mesh.ply, poses.txt, simulated_depth.npz,

@@ -331,13 +331,15 @@ def run(cfg: DictConfig) -> Path:
 
     t0 = time.perf_counter()
     rec = out / "reconstruction"
-    if (rec / "summary.json").is_file() and _read_json(rec / "summary.json").get("stamp") != stamp:
-        log.info("reconstruction/ was made from other depth maps: running it again")
+    # the depth maps and the fusion / failure / PGO settings that reconstruction/ is made from
+    rec_stamp = json.dumps({"depth": stamp, "settings": pipeline.refine_settings(cfg)}, sort_keys=True)
+    if (rec / "summary.json").is_file() and _read_json(rec / "summary.json").get("stamp") != rec_stamp:
+        log.info("reconstruction/ was made from other depth maps or settings: running it again")
         shutil.rmtree(rec)
     refined_before = (rec / "summary.json").is_file()
     summary = pipeline.refine_sequence(cfg, small, cache, depth, std, colors, np.zeros(len(small), bool), rec)
-    if summary.get("stamp") != stamp:
-        summary["stamp"] = stamp
+    if summary.get("stamp") != rec_stamp:
+        summary["stamp"] = rec_stamp
         atomic_write_text(rec / "summary.json", json.dumps(summary, indent=2) + "\n")
     timed("failure detection + PGO + fusion", t0, skipped=refined_before)
     with atomic_path(out / "mesh.ply") as tmp:

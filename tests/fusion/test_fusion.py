@@ -485,3 +485,68 @@ def test_frame_with_few_usable_pixels_is_fused(cls):
     assert vol.vbg.hashmap().size() > 0
     w = _torch_view(vol.vbg.attribute("weight"))
     assert (w > 0).sum() > 0
+
+
+# ---------------------------------------------------------------- mask edge
+def _near_invalid_brute(mask: np.ndarray, r: float) -> np.ndarray:
+    """Valid pixels within Euclidean distance r of an invalid pixel or of a pixel outside the image."""
+    h, w = mask.shape
+    pad = int(np.ceil(r)) + 1
+    big = np.zeros((h + 2 * pad, w + 2 * pad), bool)
+    big[pad:pad + h, pad:pad + w] = mask
+    iv, iu = np.nonzero(~big)
+    v, u = np.nonzero(mask)
+    d2 = (v[:, None] + pad - iv[None]) ** 2 + (u[:, None] + pad - iu[None]) ** 2
+    out = np.zeros_like(mask)
+    out[v, u] = d2.min(1) <= r * r
+    return out
+
+
+def test_erode_mask_matches_brute_force_and_analytic_cases():
+    from endorecon.fusion.kernel import erode_mask
+
+    full = torch.ones(7, 7, dtype=torch.bool)
+    assert erode_mask(full, 0) is full
+    e1 = erode_mask(full, 1).numpy()
+    assert e1[1:6, 1:6].all() and e1.sum() == 25  # the image border counts as invalid
+    one_hole = torch.ones(11, 11, dtype=torch.bool)
+    one_hole[5, 5] = False
+    e2 = erode_mask(one_hole, 2).numpy()
+    assert not e2[5, 7] and not e2[6, 6] and e2[6, 7]  # distance 2 and sqrt(2) go, sqrt(5) stays
+    v, u = np.mgrid[0:H, 0:W]
+    mask = ((u - 40) ** 2 + (v - 31.5) ** 2 <= 27**2) & ~((u - 50) ** 2 + (v - 20) ** 2 <= 9)
+    for r in (1, 2, 3):
+        got = erode_mask(torch.from_numpy(mask), r).numpy()
+        np.testing.assert_array_equal(got, mask & ~_near_invalid_brute(mask, r))
+    with pytest.raises(ValueError):
+        erode_mask(full, -1)
+    with pytest.raises(InputError, match="mask_erode_px"):
+        AdaptiveTSDF(0.02, mask_erode_px=-1)
+    with pytest.raises(InputError, match="mask_erode_px"):
+        PlainTSDF(0.02, mask_erode_px=1.5)
+
+
+@pytest.mark.parametrize("cls", [AdaptiveTSDF, PlainTSDF])
+def test_depth_at_the_mask_edge_is_not_fused(cls):
+    # a plane at z = 1 whose outer 2 px ring (inside the mask) reads 30 % too far, as the network's depth
+    # does where the dark border bleeds in; with mask_erode_px=2 none of it reaches the mesh
+    voxel = 0.02
+    v, u = np.mgrid[0:H, 0:W]
+    mask = (u - 40) ** 2 + (v - 31.5) ** 2 <= 27**2
+    ring = _near_invalid_brute(mask, 2)
+    d = np.where(ring, 1.3, 1.0).astype(np.float32)
+    kw = {"compile": False} if cls is AdaptiveTSDF else {}
+    z = {}
+    for r in (0, 2):
+        vol = cls(voxel, mask_erode_px=r, **kw)
+        vol.integrate(d, np.full((H, W), 0.005, np.float32), None, K, np.eye(4), mask)
+        z[r] = vol.extract_mesh().vertex.positions.numpy()[:, 2]
+    assert len(z[2]) > 100
+    assert np.abs(z[2] - 1.0).max() < 0.5 * voxel
+    assert np.abs(z[0] - 1.0).max() > 2 * voxel  # without erosion the biased ring bends the mesh's edge
+    # no mask: the image border is eroded instead
+    vol = cls(voxel, mask_erode_px=2, **kw)
+    vol.integrate(np.ones((H, W), np.float32), np.full((H, W), 0.005, np.float32), None, K, np.eye(4))
+    p = vol.extract_mesh().vertex.positions.numpy()
+    u_p = p[:, 0] / p[:, 2] * K[0, 0] + K[0, 2]
+    assert u_p.min() > 2 - 0.5 - 1.0 and u_p.max() < W - 3 + 0.5 + 1.0  # fused pixels are 2..W-3 (+- a voxel)

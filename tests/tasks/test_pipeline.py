@@ -45,8 +45,8 @@ def test_fusing_gt_depth_at_gt_poses_lands_on_the_gt_mesh(tiny):
         pipeline.fuse_sequence(cfg, seq, depth, depth * 0.01, colors, gt.cam_from_world, np.zeros(len(seq), bool))
 
 
-def test_ablation_variant_outputs_follow_their_checkpoint(tmp_path):
-    """A variant's cached outputs are kept only for the checkpoint they were made from."""
+def test_ablation_variant_outputs_follow_their_checkpoint_and_settings(tmp_path):
+    """A variant's cached outputs are kept only for the checkpoint and the settings they were made from."""
     import json
 
     from endorecon.tasks.ablation import _reset_if_other_source
@@ -54,14 +54,15 @@ def test_ablation_variant_outputs_follow_their_checkpoint(tmp_path):
 
     ckpt = tmp_path / "last.ckpt"
     ckpt.write_bytes(b"weights v1")
-    src = file_id(ckpt)
+    settings = {"fusion": {"mask_erode_px": 2}, "failure": {}, "pgo": {}}
+    src = {"checkpoint": file_id(ckpt), "settings": settings}
     vdir = tmp_path / "plain_fusion" / "patient_00__seq_00"
     _reset_if_other_source(vdir, src)
     (vdir / "summary.json").write_text("{}")
-    _reset_if_other_source(vdir, src)  # same checkpoint: kept
+    _reset_if_other_source(vdir, src)  # same checkpoint and settings: kept
     assert (vdir / "summary.json").is_file() and json.loads((vdir / "source.json").read_text()) == src
     ckpt.write_bytes(b"weights v2, retrained")  # another size (and mtime)
-    src2 = file_id(ckpt)
+    src2 = {"checkpoint": file_id(ckpt), "settings": settings}
     assert src2 != src
     _reset_if_other_source(vdir, src2)
     assert not (vdir / "summary.json").exists() and json.loads((vdir / "source.json").read_text()) == src2
@@ -70,3 +71,39 @@ def test_ablation_variant_outputs_follow_their_checkpoint(tmp_path):
     (legacy / "summary.json").write_text("{}")
     _reset_if_other_source(legacy, src2)
     assert not (legacy / "summary.json").exists() and (legacy / "source.json").is_file()
+
+    # other fusion settings, same checkpoint: made again, but what depends on the checkpoint alone stays
+    adapted = tmp_path / "adapted" / "y"
+    _reset_if_other_source(adapted, src2, keep=("adaptation",))
+    (adapted / "adaptation").mkdir()
+    (adapted / "adaptation" / "adapted.ckpt").write_text("w")
+    (adapted / "mesh.ply").write_text("m")
+    src3 = {"checkpoint": src2["checkpoint"], "settings": {**settings, "fusion": {"mask_erode_px": 0}}}
+    _reset_if_other_source(adapted, src3, keep=("adaptation",))
+    assert (adapted / "adaptation" / "adapted.ckpt").is_file() and not (adapted / "mesh.ply").exists()
+    assert json.loads((adapted / "source.json").read_text()) == src3
+    _reset_if_other_source(adapted, {"checkpoint": {"path": "other"}, "settings": settings}, keep=("adaptation",))
+    assert not (adapted / "adaptation").exists()  # another checkpoint: nothing kept
+    # a record of the checkpoint alone (written before settings were recorded) keeps the adaptation
+    old = tmp_path / "adapted" / "z"
+    (old / "adaptation").mkdir(parents=True)
+    (old / "mesh.ply").write_text("m")
+    (old / "source.json").write_text(json.dumps(src2["checkpoint"]))
+    _reset_if_other_source(old, src2, keep=("adaptation",))
+    assert (old / "adaptation").is_dir() and not (old / "mesh.ply").exists()
+
+
+def test_settings_diff_names_what_changed():
+    from omegaconf import OmegaConf
+
+    from endorecon.tasks.ablation import settings_diff
+    from endorecon.tasks.pipeline import refine_settings as settings_of
+
+    a = OmegaConf.create({"fusion": {"c1": 0.1, "compile": True}, "failure": {"enabled": True},
+                          "pgo": {"enabled": True, "progress": True}})
+    b = OmegaConf.create({"fusion": {"c1": 0.1, "compile": False, "mask_erode_px": 2},
+                          "failure": {"enabled": True}, "pgo": {"enabled": True, "progress": False}})
+    # keys that say how the stage runs (compile, progress), not what it computes, do not count
+    assert settings_diff(settings_of(a), settings_of(b)) == ["fusion.mask_erode_px: None -> 2"]
+    assert settings_diff(settings_of(a), settings_of(a)) == []
+    assert settings_diff(None, settings_of(a)) == ["settings unrecorded"]

@@ -279,6 +279,7 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     import endorecon.tasks.adapt
 
     monkeypatch.setattr(endorecon.tasks.adapt, "adapt_module", forbidden)
+    fuse, pgo = R.pipeline.fuse_sequence, endorecon.pgo.optimize_poses
     monkeypatch.setattr(R.pipeline, "fuse_sequence", forbidden)
     monkeypatch.setattr(endorecon.pgo, "optimize_poses", forbidden)
     R.run(cfg)
@@ -287,3 +288,13 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
         assert second[name]["skipped"], name
         assert second[name]["seconds"] == pytest.approx(first[name]["seconds"])  # the report keeps the real cost
     assert (run_dir / "mesh.ply").read_bytes() == mesh_bytes
+
+    # Third run with another fusion setting: the mesh is made again, the network stages are not run again.
+    monkeypatch.setattr(R.pipeline, "fuse_sequence", fuse)
+    monkeypatch.setattr(endorecon.pgo, "optimize_poses", pgo)
+    R.run(recon_cfg(run_dir, f"input={video}", f"intrinsics={camera}", f"ckpt={tiny_ckpt}", "sfm.allow_partial=true",
+                    "fusion.mask_erode_px=4"))
+    third = json.loads((run_dir / "timings.json").read_text())["stages"]
+    assert third["adaptation"]["skipped"] and third["inference"]["skipped"]
+    assert not third["failure detection + PGO + fusion"]["skipped"]
+    assert (run_dir / "mesh.ply").read_bytes() != mesh_bytes
