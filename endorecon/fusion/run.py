@@ -15,7 +15,7 @@ import torch
 from endorecon.fusion.tsdf import AdaptiveTSDF, PlainTSDF
 from endorecon.utils.errors import InputError
 
-__all__ = ["build_fusion", "fuse_frames", "median_valid_depth"]
+__all__ = ["FUSION_DEFAULTS", "build_fusion", "fuse_frames", "median_valid_depth"]
 
 log = logging.getLogger(__name__)
 
@@ -24,6 +24,15 @@ def _get(cfg, key, default=None):
     if isinstance(cfg, Mapping):
         return cfg.get(key, default)
     return getattr(cfg, key, default) if hasattr(cfg, key) else default
+
+
+# What a ``fusion`` config without a key gets (older run configs lack the keys added since)
+FUSION_DEFAULTS = dict(
+    name="adaptive", voxel_size=None, voxel_fraction=0.01, depth_max_factor=None, block_resolution=8,
+    block_count=20000, mesh_weight_threshold=1.0, device="auto", min_component_fraction=0.0,
+    boundary_trim_rings=0, mask_erode_px=0, c1=0.1, c2=0.8, trunc_std_multiplier=3.0, trunc_min_voxels=6.0,
+    trunc_max_voxels=24.0, std_mode="propagate", compile=False, trunc_voxels=6.0,
+)
 
 
 def median_valid_depth(depth, mask=None) -> float:
@@ -45,42 +54,45 @@ def build_fusion(cfg_fusion, median_depth: float | None = None) -> AdaptiveTSDF 
             voxel (``voxel_fraction`` x it) when ``voxel_size`` is null and the
             depth cut-off (``depth_max_factor`` x it).
     """
-    name = _get(cfg_fusion, "name", "adaptive")
-    voxel = _get(cfg_fusion, "voxel_size")
+    def get(key):
+        return _get(cfg_fusion, key, FUSION_DEFAULTS[key])
+
+    name = get("name")
+    voxel = get("voxel_size")
     med = None if median_depth is None else float(median_depth)
     if voxel is None:
         if med is None or not (math.isfinite(med) and med > 0):
             raise InputError(f"fusion.voxel_size is null and the median depth ({median_depth}) is not a positive number",
                              fix="set fusion.voxel_size, or fuse frames with valid depth")
-        voxel = float(_get(cfg_fusion, "voxel_fraction", 0.01)) * med
-    factor = _get(cfg_fusion, "depth_max_factor")
+        voxel = float(get("voxel_fraction")) * med
+    factor = get("depth_max_factor")
     depth_max = float("inf")
     if factor is not None and med is not None and math.isfinite(med) and med > 0:
         depth_max = float(factor) * med
     common = dict(
         voxel_size=float(voxel),
         depth_max=depth_max,
-        block_resolution=int(_get(cfg_fusion, "block_resolution", 8)),
-        block_count=int(_get(cfg_fusion, "block_count", 20000)),
-        mesh_weight_threshold=float(_get(cfg_fusion, "mesh_weight_threshold", 1.0)),
-        device=str(_get(cfg_fusion, "device", "auto")),
-        min_component_fraction=float(_get(cfg_fusion, "min_component_fraction", 0.0)),
-        boundary_trim_rings=int(_get(cfg_fusion, "boundary_trim_rings", 0)),
-        mask_erode_px=_get(cfg_fusion, "mask_erode_px", 0),
+        block_resolution=int(get("block_resolution")),
+        block_count=int(get("block_count")),
+        mesh_weight_threshold=float(get("mesh_weight_threshold")),
+        device=str(get("device")),
+        min_component_fraction=float(get("min_component_fraction")),
+        boundary_trim_rings=int(get("boundary_trim_rings")),
+        mask_erode_px=get("mask_erode_px"),
     )
     if name == "adaptive":
         return AdaptiveTSDF(
-            c1=float(_get(cfg_fusion, "c1", 0.1)),
-            c2=float(_get(cfg_fusion, "c2", 0.8)),
-            trunc_std_multiplier=float(_get(cfg_fusion, "trunc_std_multiplier", 3.0)),
-            trunc_min_voxels=float(_get(cfg_fusion, "trunc_min_voxels", 6.0)),
-            trunc_max_voxels=float(_get(cfg_fusion, "trunc_max_voxels", 24.0)),
-            std_mode=str(_get(cfg_fusion, "std_mode", "propagate")),
-            compile=bool(_get(cfg_fusion, "compile", False)),
+            c1=float(get("c1")),
+            c2=float(get("c2")),
+            trunc_std_multiplier=float(get("trunc_std_multiplier")),
+            trunc_min_voxels=float(get("trunc_min_voxels")),
+            trunc_max_voxels=float(get("trunc_max_voxels")),
+            std_mode=str(get("std_mode")),
+            compile=bool(get("compile")),
             **common,
         )
     if name == "plain":
-        return PlainTSDF(trunc_voxels=float(_get(cfg_fusion, "trunc_voxels", 6.0)), **common)
+        return PlainTSDF(trunc_voxels=float(get("trunc_voxels")), **common)
     raise InputError(f"unknown fusion.name {name!r}", fix="use fusion=adaptive or fusion=plain")
 
 

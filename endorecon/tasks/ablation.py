@@ -77,14 +77,16 @@ def recorded_settings(it_dir: Path) -> dict | None:
         return None
 
 
-def settings_diff(old: dict | None, new: dict) -> list[str]:
-    """``group.key: old -> new`` for every setting that differs (``["settings unrecorded"]`` when ``old`` is None)."""
+def settings_diff(old: dict | None, new: dict, ignore: tuple[str, ...] = ("fusion.boundary_trim_rings",)) -> list[str]:
+    """``group.key: old -> new`` for every setting that differs (``["settings unrecorded"]`` when ``old`` is
+    None), less ``ignore`` (the boundary trim: :func:`configured_mesh` applies it to any saved mesh)."""
     if old is None:
         return ["settings unrecorded"]
     out = []
     for g in REFINE_SETTINGS:
         a, b = old.get(g) or {}, new.get(g) or {}
-        out += [f"{g}.{k}: {a.get(k)} -> {b.get(k)}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        out += [f"{g}.{k}: {a.get(k)} -> {b.get(k)}" for k in sorted(set(a) | set(b))
+                if a.get(k) != b.get(k) and f"{g}.{k}" not in ignore]
     return out
 
 

@@ -228,6 +228,10 @@ def refine_settings(cfg) -> dict | None:
         out = {}
         for g in REFINE_SETTINGS:
             d = OmegaConf.to_container(cfg[g], resolve=True) if g in cfg else None
+            if g == "fusion" and isinstance(d, dict):  # a key a config lacks: what build_fusion used for it
+                from endorecon.fusion.run import FUSION_DEFAULTS
+
+                d = {**FUSION_DEFAULTS, **d}
             if isinstance(d, dict):
                 d = {k: v for k, v in d.items() if k not in _NO_EFFECT.get(g, ())}
             out[g] = d

@@ -101,9 +101,15 @@ def test_settings_diff_names_what_changed():
 
     a = OmegaConf.create({"fusion": {"c1": 0.1, "compile": True}, "failure": {"enabled": True},
                           "pgo": {"enabled": True, "progress": True}})
-    b = OmegaConf.create({"fusion": {"c1": 0.1, "compile": False, "mask_erode_px": 2},
+    b = OmegaConf.create({"fusion": {"c1": 0.1, "compile": False, "mask_erode_px": 2, "boundary_trim_rings": 1},
                           "failure": {"enabled": True}, "pgo": {"enabled": True, "progress": False}})
-    # keys that say how the stage runs (compile, progress), not what it computes, do not count
-    assert settings_diff(settings_of(a), settings_of(b)) == ["fusion.mask_erode_px: None -> 2"]
+    # keys that say how the stage runs (compile, progress), not what it computes, do not count; a key the
+    # old record lacks is what build_fusion used without it; the trim is re-applied to any mesh
+    assert settings_diff(settings_of(a), settings_of(b)) == ["fusion.mask_erode_px: 0 -> 2"]
+    assert settings_diff(settings_of(a), settings_of(b), ignore=()) == ["fusion.boundary_trim_rings: 0 -> 1",
+                                                                        "fusion.mask_erode_px: 0 -> 2"]
+    same = OmegaConf.create({"fusion": {"c1": 0.1, "mask_erode_px": 0}, "failure": {"enabled": True},
+                             "pgo": {"enabled": True}})
+    assert settings_diff(settings_of(a), settings_of(same)) == []  # an explicit default is no change
     assert settings_diff(settings_of(a), settings_of(a)) == []
     assert settings_diff(None, settings_of(a)) == ["settings unrecorded"]

@@ -130,14 +130,14 @@ def test_results_table_runs_again_the_last_stage_of_iterations_trained_with_othe
     rows = ablation.run_fold(cfg, fold_dir, tmp_path / "fold=0")
     by = {r["variant"]: r for r in rows}
     for v, it in (("full", 1), ("iteration0", 0)):
-        assert by[v]["refused"] == ["fusion.mask_erode_px: 2 -> 3"], by[v]
+        assert by[v]["refused"] == ["fusion.mask_erode_px: 0 -> 3"], by[v]
         sdir = tmp_path / "fold=0" / v / f"iteration={it}" / "sequences" / "patient_00__seq_00"
         assert (sdir / "mesh.ply").is_file() and by[v]["mean_mm"] is not None
     # the SfM rerun of repeated failures finds the training run's previous report in the same layout
     assert (tmp_path / "fold=0" / "full" / "iteration=0" / "sequences" / "patient_00__seq_00" / "failures.csv").is_file()
     assert "refused" not in by["plain_fusion"]
     md = ablation.write_table(rows, tmp_path)[1].read_text()
-    assert "| 0 | full* |" in md and "fusion.mask_erode_px: 2 -> 3" in md
+    assert "| 0 | full* |" in md and "fusion.mask_erode_px: 0 -> 3" in md
     stamp = (tmp_path / "fold=0" / "full" / "iteration=1" / "sequences" / "patient_00__seq_00" / "summary.json").stat()
     again = {r["variant"]: r for r in ablation.run_fold(cfg, fold_dir, tmp_path / "fold=0")}
     assert again["full"]["mean_mm"] == pytest.approx(by["full"]["mean_mm"])
