@@ -4,7 +4,8 @@ For the held-out patient of a fold (after ``train.py`` made its iterations):
 
 * ``full``            — the last iteration's mesh (adaptive fusion + failure detection + PGO);
 * ``plain_fusion``    — the same depths, poses and flags through Open3D's plain TSDF (``fusion=plain``);
-* ``no_failure_pgo``  — the same depths, adaptive fusion, SfM poses, no frame excluded;
+* ``no_failure_pgo``  — the same depths, adaptive fusion, no frame excluded and no PGO in the last stage
+  (the poses the previous iteration's PGO left, as ``full`` starts from; SfM's at iteration 0);
 * ``iteration0``      — no Dense Simulation Loss: the mesh of bootstrapping iteration 0;
 * ``gt_upper_bound``  — ground-truth depth fused at ground-truth poses (what fusion alone can reach);
 * ``adapted``         — the application phase of ``reconstruct.py``: the last iteration's network adapted to
