@@ -185,7 +185,7 @@ class _TSDFBase:
             erode_ok = False
         if not erode_ok:
             raise InputError(f"fusion: mask_erode_px must be a whole number >= 0, got {mask_erode_px}",
-                             fix="set fusion.mask_erode_px=2 (0 fuses every pixel of the mask)")
+                             fix="set fusion.mask_erode_px to 0 (every pixel of the mask is fused) or a few pixels, e.g. 2")
         self.mask_erode_px = int(mask_erode_px)
         if not 0.0 <= min_component_fraction < 1.0:
             raise InputError(f"fusion: min_component_fraction must be in [0, 1), got {min_component_fraction}",
