@@ -99,24 +99,28 @@ def _reset_if_other_source(vdir: Path, source: dict, keep: tuple[str, ...] = ())
     named in ``keep`` stay (the adapted network: it depends on the checkpoint, not on the fusion)."""
     vdir = Path(vdir)
     marker = vdir / "source.json"
+    try:
+        old = json.loads(marker.read_text())
+    except (OSError, ValueError):
+        old = None
+    if old == source:
+        return
     if vdir.exists():
-        try:
-            old = json.loads(marker.read_text())
-        except (OSError, ValueError):
-            old = None
-        if old != source:
-            if isinstance(old, dict) and "checkpoint" not in old and "settings" not in old:
-                old = {"checkpoint": old}  # a record of the checkpoint alone (before settings were recorded)
-            same_ckpt = isinstance(old, dict) and old.get("checkpoint") == source.get("checkpoint")
-            log.info("%s was made from another (or an unrecorded) %s: running it again", vdir,
-                     "setting" if same_ckpt else "checkpoint")
-            for p in vdir.iterdir():
-                if same_ckpt and p.name in keep:
-                    continue
-                shutil.rmtree(p) if p.is_dir() else p.unlink()
-    if not marker.is_file() or json.loads(marker.read_text()) != source:
-        vdir.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(marker, json.dumps(source, indent=2) + "\n")
+        if isinstance(old, dict) and "checkpoint" not in old and "settings" not in old:
+            old = {"checkpoint": old}  # a record of the checkpoint alone (before settings were recorded)
+        same_ckpt = isinstance(old, dict) and old.get("checkpoint") == source.get("checkpoint")
+        log.info("%s was made from another (or an unrecorded) %s: running it again", vdir,
+                 "setting" if same_ckpt else "checkpoint")
+        _empty_dir(vdir, keep if same_ckpt else ())
+    vdir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(marker, json.dumps(source, indent=2) + "\n")
+
+
+def _empty_dir(vdir: Path, keep: tuple[str, ...] = ()) -> None:
+    """Delete everything in ``vdir`` except the entries named in ``keep``."""
+    for p in Path(vdir).iterdir():
+        if p.name not in keep:
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
 
 
 def configured_mesh(cfg: DictConfig, mesh_path: Path, out_dir: Path) -> Path:
@@ -270,9 +274,7 @@ def run_adapted(cfg: DictConfig, module, data_root: Path, sfm_seq, out_dir: Path
     metrics_path = out_dir / "depth_metrics.json"
     if metrics_path.is_file() and json.loads(metrics_path.read_text()).get("options") != opts:
         log.info("%s was made with other adapt options: running it again", out_dir)
-        for p in out_dir.iterdir():  # keep source.json (which checkpoint): that has not changed
-            if p.name != "source.json":
-                shutil.rmtree(p) if p.is_dir() else p.unlink()
+        _empty_dir(out_dir, keep=("source.json",))  # which checkpoint and settings: those have not changed
     if not ((out_dir / "summary.json").is_file() and metrics_path.is_file()):
         net = copy.deepcopy(module)
         stamp = json.dumps({"fold": int(cfg.fold), "sequence": base.seq.name, "hw": [base.seq.height, base.seq.width]})

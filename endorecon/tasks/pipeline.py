@@ -224,13 +224,13 @@ _NO_EFFECT = {"fusion": ("compile", "device"), "pgo": ("progress",)}
 def refine_settings(cfg) -> dict | None:
     """The resolved ``fusion``/``failure``/``pgo`` settings of ``cfg`` that :func:`refine_sequence` makes its mesh
     with (what a cached result must match); None if unreadable."""
+    from endorecon.fusion.run import FUSION_DEFAULTS
+
     try:
         out = {}
         for g in REFINE_SETTINGS:
             d = OmegaConf.to_container(cfg[g], resolve=True) if g in cfg else None
             if g == "fusion" and isinstance(d, dict):  # a key a config lacks: what build_fusion used for it
-                from endorecon.fusion.run import FUSION_DEFAULTS
-
                 d = {**FUSION_DEFAULTS, **d}
             if isinstance(d, dict):
                 d = {k: v for k, v in d.items() if k not in _NO_EFFECT.get(g, ())}
