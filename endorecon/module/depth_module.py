@@ -34,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 from endorecon.geometry import invert_pose, warp_depth
 from endorecon.losses import dense_simulation_loss, depth_consistency_loss, sparse_depth_loss, sparse_flow_loss
 from endorecon.module.visuals import pair_panel
-from endorecon.networks.scaling import scale_depth
+from endorecon.networks.scaling import SCALE_MODES, scale_depth
 
 BATCH_KEYS = (
     "image_i", "image_j",  # (B,3,H,W) float [0,1]
@@ -79,7 +79,9 @@ class DepthModule(L.LightningModule):
             :class:`endorecon.networks.FCDenseNet`), ``optimizer`` and ``scheduler``
             (``_target_`` + ``_partial_: true``; OneCycleLR gets ``total_steps`` from the
             trainer if not given), ``scheduler_interval`` ("step"/"epoch"),
-            ``log_images_every_n_steps`` (0 = never).
+            ``log_images_every_n_steps`` (0 = never), ``depth_scaling`` (the Depth Scaling
+            Layer's estimator, :data:`endorecon.networks.scaling.SCALE_MODES`; absent in
+            checkpoints made before it existed: ``"ratio_of_sums"``, what those were trained with).
         loss: ``cfg.loss``: weights ``sparse_depth``, ``depth_consistency``, ``sparse_flow``,
             ``dense_simulation``; ``eps``; ``warmup_epochs``; ``flow_std_floor``.
     """
@@ -98,6 +100,9 @@ class DepthModule(L.LightningModule):
         self.eps = float(loss["eps"])
         self.warmup_epochs = int(loss["warmup_epochs"])
         self.flow_std_floor = float(loss["flow_std_floor"])
+        self.scale_mode = str(model.get("depth_scaling", "ratio_of_sums"))
+        if self.scale_mode not in SCALE_MODES:
+            raise ValueError(f"model.depth_scaling must be one of {SCALE_MODES}, got {self.scale_mode!r}")
         self.log_images_every_n_steps = int(model.get("log_images_every_n_steps", 0))
         self.skipped_batches = 0
 
@@ -130,7 +135,7 @@ class DepthModule(L.LightningModule):
             if sparse_depth is not None:
                 if sparse_valid is None:
                     sparse_valid = sparse_depth > 0
-                depth, std, _, _ = scale_depth(depth, std, sparse_depth, sparse_valid, self.eps)
+                depth, std, _, _ = scale_depth(depth, std, sparse_depth, sparse_valid, self.eps, self.scale_mode)
         finally:
             self.train(was_training)
         return depth, std
@@ -155,7 +160,7 @@ class DepthModule(L.LightningModule):
         depth, std = self.net(image, mask)
         sparse_depth = _cat(batch, "sparse_depth_i", "sparse_depth_j")
         sparse_valid = _cat(batch, "sparse_valid_i", "sparse_valid_j").bool()
-        depth, std, _, has_sparse = scale_depth(depth, std, sparse_depth, sparse_valid, self.eps)
+        depth, std, _, has_sparse = scale_depth(depth, std, sparse_depth, sparse_valid, self.eps, self.scale_mode)
 
         T_ji = batch["cam_j_from_cam_i"].to(depth.dtype)
         T = torch.cat([T_ji, invert_pose(T_ji)], 0)  # i->j for frames i, j->i for frames j

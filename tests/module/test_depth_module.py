@@ -263,3 +263,33 @@ def test_validation_and_images_logged(tmp_path):
     ev = EventAccumulator(str(logger.log_dir))
     ev.Reload()
     assert "train/input_depth_std_sparse_error" in ev.Tags()["images"]
+
+
+@pytest.mark.parametrize("mode", ["ratio_of_sums", "log_mean"])
+def test_depth_scaling_mode_is_used_and_kept_in_the_checkpoint(tmp_path, mode):
+    torch.manual_seed(0)
+    module = DepthModule(_model_cfg(depth_scaling=mode), {"warmup_epochs": 0})
+    batch = make_batch()
+    trainer = _trainer(tmp_path, 1)
+    trainer.fit(module, DataLoader([batch], batch_size=None))
+    trainer.save_checkpoint(tmp_path / "m.ckpt")
+    loaded = DepthModule.load_from_checkpoint(tmp_path / "m.ckpt")
+    assert loaded.scale_mode == mode
+    img, mask, sd, sv = batch["image_i"], batch["mask_i"], batch["sparse_depth_i"], batch["sparse_valid_i"]
+    d, _ = loaded.predict(img, mask, sd, sv)
+    for b in range(img.shape[0]):
+        r = sd[b][sv[b]] / d[b][sv[b]]
+        geo = torch.exp(torch.log(r).mean()).item()
+        assert (geo if mode == "log_mean" else sd[b][sv[b]].sum().item() / d[b][sv[b]].sum().item()) == \
+            pytest.approx(1.0, rel=1e-5)
+        if r.std() > 1e-3:  # the two estimators differ on this frame: the other one is not 1
+            other = sd[b][sv[b]].sum().item() / d[b][sv[b]].sum().item() if mode == "log_mean" else geo
+            assert other != pytest.approx(1.0, rel=1e-5)
+
+
+def test_old_checkpoints_keep_the_ratio_of_sums():
+    cfg = _model_cfg()
+    assert "depth_scaling" not in cfg
+    assert DepthModule(cfg).scale_mode == "ratio_of_sums"
+    with pytest.raises(ValueError, match="depth_scaling"):
+        DepthModule(_model_cfg(depth_scaling="median"))

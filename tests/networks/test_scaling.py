@@ -1,5 +1,6 @@
 """Depth Scaling Layer: analytic scale, frames without points, gradcheck."""
 
+import pytest
 import torch
 
 from endorecon.networks import DepthScalingLayer, depth_scale, scale_depth
@@ -47,3 +48,42 @@ def test_gradcheck():
     valid[:, 0, 0, 0] = True
     fn = lambda d, s, sp: scale_depth(d, s, sp, valid)[:2]  # noqa: E731
     assert torch.autograd.gradcheck(fn, (depth, std, sparse))
+
+
+def test_log_mean_is_the_geometric_mean_of_the_ratios():
+    depth = torch.tensor([1.0, 1.0, 5.0, 0.0]).view(1, 1, 1, 4)
+    sparse = torch.tensor([2.0, 8.0, float("nan"), 3.0]).view(1, 1, 1, 4)
+    valid = torch.tensor([True, True, False, True]).view(1, 1, 1, 4)  # the last: prediction 0, left out
+    scale, has = depth_scale(depth, sparse, valid, mode="log_mean")
+    assert scale.item() == pytest.approx(4.0) and has.all()  # sqrt(2 * 8); ratio_of_sums: 10 / 2 = 5
+    assert depth_scale(depth, sparse, valid)[0].item() == pytest.approx(13.0 / 2.0)  # the 0 prediction counts there
+
+
+def test_log_mean_recovers_a_known_scale_and_keeps_one_without_points():
+    g = torch.Generator().manual_seed(2)
+    depth = torch.rand(2, 1, 6, 7, generator=g, dtype=torch.float64) + 0.2
+    sparse = depth * torch.tensor([3.0, 0.5], dtype=torch.float64).view(-1, 1, 1, 1)
+    valid = torch.rand(2, 1, 6, 7, generator=g) < 0.3
+    valid[0, 0, 0, 0] = True
+    valid[1] = False
+    d, s, scale, has = scale_depth(depth, torch.ones_like(depth), sparse, valid, mode="log_mean")
+    torch.testing.assert_close(scale, torch.tensor([3.0, 1.0], dtype=torch.float64))
+    assert has.tolist() == [True, False]
+    torch.testing.assert_close(s[0], torch.full_like(s[0], 3.0))
+
+
+def test_log_mean_gradcheck():
+    g = torch.Generator().manual_seed(3)
+    depth = (torch.rand(2, 1, 4, 5, generator=g, dtype=torch.float64) + 0.5).requires_grad_()
+    std = (torch.rand(2, 1, 4, 5, generator=g, dtype=torch.float64) + 0.1).requires_grad_()
+    sparse = (torch.rand(2, 1, 4, 5, generator=g, dtype=torch.float64) + 1).requires_grad_()
+    valid = torch.rand(2, 1, 4, 5, generator=g) < 0.5
+    valid[:, 0, 0, 0] = True
+    fn = lambda d, s, sp: scale_depth(d, s, sp, valid, mode="log_mean")[:2]  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (depth, std, sparse))
+
+
+def test_unknown_mode_is_an_error():
+    depth = torch.ones(1, 1, 2, 2)
+    with pytest.raises(ValueError, match="model.depth_scaling"):
+        DepthScalingLayer(mode="median")(depth, depth, depth, depth > 0)
