@@ -34,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 from endorecon.geometry import invert_pose, warp_depth
 from endorecon.losses import dense_simulation_loss, depth_consistency_loss, sparse_depth_loss, sparse_flow_loss
 from endorecon.module.visuals import pair_panel
-from endorecon.networks.scaling import SCALE_MODES, scale_depth
+from endorecon.networks.scaling import check_scale_mode, scale_depth
 
 BATCH_KEYS = (
     "image_i", "image_j",  # (B,3,H,W) float [0,1]
@@ -100,9 +100,8 @@ class DepthModule(L.LightningModule):
         self.eps = float(loss["eps"])
         self.warmup_epochs = int(loss["warmup_epochs"])
         self.flow_std_floor = float(loss["flow_std_floor"])
-        self.scale_mode = str(model.get("depth_scaling", "ratio_of_sums"))
-        if self.scale_mode not in SCALE_MODES:
-            raise ValueError(f"model.depth_scaling must be one of {SCALE_MODES}, got {self.scale_mode!r}")
+        # checked here, not at the first batch: a typo fails before any data is loaded
+        self.scale_mode = check_scale_mode(str(model.get("depth_scaling", "ratio_of_sums")))
         self.log_images_every_n_steps = int(model.get("log_images_every_n_steps", 0))
         self.skipped_batches = 0
 

@@ -28,6 +28,13 @@ from endorecon.geometry._checks import check_shape
 SCALE_MODES = ("ratio_of_sums", "log_mean")
 
 
+def check_scale_mode(mode: str) -> str:
+    """``mode`` if it is one of :data:`SCALE_MODES`, else a ValueError naming the config key."""
+    if mode not in SCALE_MODES:
+        raise ValueError(f"model.depth_scaling must be one of {SCALE_MODES}, got {mode!r}")
+    return mode
+
+
 def depth_scale(
     depth: torch.Tensor,
     sparse_depth: torch.Tensor,
@@ -48,8 +55,7 @@ def depth_scale(
     B, _, H, W = check_shape(depth, "depth", (None, 1, None, None))
     check_shape(sparse_depth, "sparse_depth", (B, 1, H, W))
     check_shape(sparse_valid, "sparse_valid", (B, 1, H, W))
-    if mode not in SCALE_MODES:
-        raise ValueError(f"depth scaling mode must be one of {SCALE_MODES}, got {mode!r} (model.depth_scaling)")
+    check_scale_mode(mode)
     valid = sparse_valid.bool() & torch.isfinite(sparse_depth) & (sparse_depth > 0)
     if mode == "log_mean":
         valid = valid & torch.isfinite(depth) & (depth > eps)
