@@ -40,7 +40,7 @@ from endorecon.data.sequence import Sequence, list_frames, load_sequence_folder,
 from endorecon.data.transforms import crop_sequence, resize_sequence
 from endorecon.tasks import pipeline
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_path, atomic_save_npz, atomic_write_text
+from endorecon.utils.io import atomic_path, atomic_save_npz, atomic_write_text, file_id
 
 log = logging.getLogger(__name__)
 
@@ -247,9 +247,9 @@ def network_sequence(sfm_seq: Sequence, module, train_hw: tuple[int, int] | None
 
 # ------------------------------------------------------------------ stages
 def _stamp(ckpt: Path, seq: Sequence) -> str:
-    st = ckpt.stat()
-    return json.dumps(dict(ckpt=str(ckpt.resolve()), size=st.st_size, mtime=st.st_mtime_ns, hw=[seq.height, seq.width],
-                           window=list(seq.native_window or []), frames=len(seq)))
+    """What the depth maps depend on: the checkpoint file and the frames' size, window and count."""
+    return json.dumps(dict(ckpt=file_id(ckpt), hw=[seq.height, seq.width],
+                           window=list(seq.native_window or []), frames=len(seq)), sort_keys=True)
 
 
 def infer_stage(module, seq: Sequence, cache, stamp: str, out: Path):
