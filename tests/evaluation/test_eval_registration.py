@@ -37,6 +37,22 @@ def test_sample_points_area_uniform_and_seeded(helpers):
     assert not np.array_equal(p, sample_points(mesh, 20000, seed=4))
 
 
+def test_sample_points_do_not_depend_on_storage_order(helpers):
+    import open3d as o3d
+
+    rng = np.random.default_rng(1)
+    v = rng.normal(size=(30, 3))
+    tri = np.array([rng.choice(30, 3, replace=False) for _ in range(40)])
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(tri))
+    # the same surface: vertices permuted, triangles shuffled, each rotated cyclically (orientation kept)
+    perm = rng.permutation(30)
+    new_index = np.argsort(perm)
+    tri2 = new_index[tri][rng.permutation(40)]
+    tri2 = np.stack([np.roll(t, k) for t, k in zip(tri2, rng.integers(0, 3, 40))])
+    moved = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v[perm]), o3d.utility.Vector3iVector(tri2))
+    assert np.array_equal(sample_points(mesh, 5000, seed=2), sample_points(moved, 5000, seed=2))
+
+
 def test_global_registration_recovers_known_similarity(ct_mesh, recon_from_ct, helpers):
     recon = helpers.moved_mesh(ct_mesh, recon_from_ct)
     src = sample_points(recon, 4000, seed=0)
