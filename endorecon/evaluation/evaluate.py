@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from endorecon.evaluation.meshes import ReferenceSurface, load_mesh, sample_points
+from endorecon.evaluation.meshes import SAMPLER, ReferenceSurface, load_mesh, sample_points
 from endorecon.evaluation.plots import save_residual_heatmap, save_residual_histogram
 from endorecon.evaluation.registration import register
 from endorecon.utils.io import atomic_save_npz, atomic_write_text, file_id
@@ -94,7 +94,7 @@ def evaluate_mesh(
     recon = load_mesh(mesh_path, "reconstructed mesh")
     reference = load_mesh(reference_path, "reference mesh")
     registration = dict(registration or {})
-    params = {"n_points": int(n_points), "seed": int(seed), "registration": registration}
+    params = {"n_points": int(n_points), "seed": int(seed), "sampler": SAMPLER, "registration": registration}
     inputs = _fingerprint(
         mesh_path, reference_path, (cam_centers, gt_cam_centers, cam_rotations, gt_cam_rotations), params
     )

@@ -57,6 +57,10 @@ def _triangle_areas(v: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]]), axis=1)
 
 
+# Recorded with every evaluation, so that one made by an earlier sampler (stored order) is not reused.
+SAMPLER = "area-uniform, coordinate order"
+
+
 def sample_points(mesh: o3d.geometry.TriangleMesh, n: int = 40000, seed: int = 0) -> np.ndarray:
     """Area-uniform random points on a triangle mesh.
 

@@ -193,11 +193,11 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
                 ev = refuse_iteration(cfg, info, fold_dir, it, sfm_seq, out_dir / variant, diff)
                 rows.append({**_row(raw, variant, ev, abs_rel[variant]), "refused": diff})
                 continue
-            ev = m.get("evaluation")
+            # Evaluated here, not read from the run's metrics.json, so that every row is measured by the
+            # current evaluator (the same one gives the same numbers; a changed one recomputes).
             mesh = configured_mesh(cfg, it_dir / "mesh.ply", out_dir / variant / slug)
-            if mesh != it_dir / "mesh.ply":  # saved with fewer boundary rings trimmed than configured now
-                _, poses = read_poses_txt(it_dir / "poses.txt")
-                ev = pipeline.evaluate_against_ct(info.root, prep.seq, mesh, poses, out_dir / variant / slug / "evaluation")
+            _, poses = read_poses_txt(it_dir / "poses.txt")
+            ev = pipeline.evaluate_against_ct(info.root, prep.seq, mesh, poses, out_dir / variant / slug / "evaluation")
             rows.append(_row(raw, variant, ev, abs_rel[variant]))
         depth = std = colors = None
         for variant, changes in (("plain_fusion", {"fusion.name": "plain"}),
