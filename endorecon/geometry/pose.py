@@ -151,7 +151,12 @@ def se3_log(T: torch.Tensor) -> torch.Tensor:
 
 
 def rotation_angle_deg(R: torch.Tensor) -> torch.Tensor:
-    """Rotation angle of (B, 3, 3) rotations in degrees (B,)."""
+    """Rotation angle of (B, 3, 3) rotations in degrees (B,), in [0, 180].
+
+    ``atan2(sin, cos)`` with the sine from the skew part: ``arccos`` of the trace alone
+    reads every angle under ~0.02 deg as 0 in float32 (cos rounds to 1)."""
     check_shape(R, "R", (None, 3, 3))
-    cos = ((R.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1.0, 1.0)
-    return torch.rad2deg(torch.arccos(cos))
+    cos = (R.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2
+    skew = torch.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1)
+    sin = torch.linalg.vector_norm(skew, dim=-1) / 2
+    return torch.rad2deg(torch.atan2(sin, cos))

@@ -93,3 +93,16 @@ def test_gradchecks():
     assert torch.autograd.gradcheck(transform_points, (T, p))
     q = torch.randn(3, 4, dtype=D, requires_grad=True)
     assert torch.autograd.gradcheck(quaternion_to_matrix, (q,))
+
+
+def test_rotation_angle_deg_small_and_large_angles():
+    # Angles about random axes, from 1e-4 deg (float32 arccos of the trace reads 0 there) to 180 deg.
+    angles = torch.tensor([1e-4, 5e-3, 0.3, 45.0, 120.0, 179.0, 180.0], dtype=D)
+    axes = torch.nn.functional.normalize(torch.randn(len(angles), 3, dtype=D, generator=torch.Generator().manual_seed(0)), dim=-1)
+    xi = torch.cat([torch.zeros(len(angles), 3, dtype=D), axes * torch.deg2rad(angles)[:, None]], -1)
+    R = se3_exp(xi)[:, :3, :3]
+    assert torch.allclose(rotation_angle_deg(R), angles, rtol=1e-9, atol=1e-9)
+    got32 = rotation_angle_deg(R.float())
+    assert torch.allclose(got32[:3].double(), angles[:3], rtol=1e-3)
+    assert torch.allclose(got32.double(), angles, atol=1e-3)
+    assert rotation_angle_deg(torch.eye(3, dtype=D)[None]).item() == 0.0
