@@ -123,11 +123,17 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     return pose_from_rt(R, (V @ v[:, :, None])[..., 0])
 
 
+def _quaternion_angle(q: torch.Tensor) -> torch.Tensor:
+    """Rotation angle (rad, [0, π]) of unit quaternions (B, 4) with w >= 0: accurate near 0 and π,
+    where ``arccos`` of the trace is not (in float32 every angle under ~0.02 deg reads 0)."""
+    return 2 * torch.atan2(q[:, 1:].norm(dim=-1), q[:, 0])
+
+
 def so3_log(R: torch.Tensor) -> torch.Tensor:
     """Logarithm of SO(3): (B, 3, 3) -> axis-angle (B, 3).  Via quaternions (stable near 0 and π)."""
     q = matrix_to_quaternion(R)
     vn = q[:, 1:].norm(dim=-1)
-    angle = 2 * torch.atan2(vn, q[:, 0])
+    angle = _quaternion_angle(q)
     small = vn < 1e-8
     scale = torch.where(small, 2.0 / q[:, 0].clamp(min=1e-12), angle / vn.clamp(min=1e-12))
     return q[:, 1:] * scale[:, None]
@@ -151,12 +157,5 @@ def se3_log(T: torch.Tensor) -> torch.Tensor:
 
 
 def rotation_angle_deg(R: torch.Tensor) -> torch.Tensor:
-    """Rotation angle of (B, 3, 3) rotations in degrees (B,), in [0, 180].
-
-    ``atan2(sin, cos)`` with the sine from the skew part: ``arccos`` of the trace alone
-    reads every angle under ~0.02 deg as 0 in float32 (cos rounds to 1)."""
-    check_shape(R, "R", (None, 3, 3))
-    cos = (R.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2
-    skew = torch.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1)
-    sin = torch.linalg.vector_norm(skew, dim=-1) / 2
-    return torch.rad2deg(torch.atan2(sin, cos))
+    """Rotation angle of (B, 3, 3) rotations in degrees (B,), in [0, 180] (the angle of :func:`so3_log`)."""
+    return torch.rad2deg(_quaternion_angle(matrix_to_quaternion(R)))
