@@ -5,7 +5,10 @@ reference with a similarity (see ``registration``), measure point-to-surface
 distances of the registered samples, and write ``metrics.json``,
 ``residual_heatmap.png``, ``residual_histogram.png`` and ``residuals.npz``
 (registered samples + their distances).  Residuals are in the reference's
-units, which are millimetres for CT / the phantom.
+units, which are millimetres for CT / the phantom.  When the mesh carries
+endorecon's per-vertex ``std``, ``metrics.json`` also says how well that std
+ranks the vertices' residuals (``std_residual_spearman``), so an uncertainty
+that does not point at the errors shows in every evaluation.
 """
 
 from __future__ import annotations
@@ -28,6 +31,25 @@ HEATMAP_FILE = "residual_heatmap.png"
 HISTOGRAM_FILE = "residual_histogram.png"
 RESIDUALS_FILE = "residuals.npz"
 GLOBAL_POINTS = 20000  # samples per mesh for the FPFH + RANSAC initialisation
+# Recorded with every evaluation: metrics of an earlier version (without the std ranking) are not reused.
+METRICS_VERSION = 2
+
+
+def vertex_std(mesh_path: Path, vertices: np.ndarray) -> np.ndarray | None:
+    """Per-vertex ``std`` of a mesh written by endorecon's fusion, in the order of ``vertices`` (V, 3) as
+    :func:`load_mesh` read them; None when the file has no std (any other mesh) or its vertices differ."""
+    from endorecon.fusion.ply import read_mesh_ply
+
+    try:
+        tm = read_mesh_ply(mesh_path)
+    except Exception:  # not one of endorecon's PLYs: no std to rank
+        return None
+    if "std" not in tm.vertex:
+        return None
+    pos = tm.vertex.positions.numpy().astype(np.float64)
+    if pos.shape != vertices.shape or not np.allclose(pos, vertices, rtol=0, atol=1e-6 * max(1.0, np.abs(pos).max())):
+        return None
+    return tm.vertex["std"].numpy().reshape(-1).astype(np.float64)
 
 
 def residual_stats(residual_mm: np.ndarray) -> dict:
@@ -85,7 +107,9 @@ def evaluate_mesh(
             point_weight).
         overwrite: recompute even if ``metrics.json`` for the same inputs exists.
     Returns:
-        the metrics dict written to ``metrics.json``.
+        the metrics dict written to ``metrics.json``: residual statistics (:func:`residual_stats`), the
+        similarity, the registration's diagnostics and ``std_residual_spearman`` (Spearman ρ of the mesh's
+        per-vertex std against the vertices' residuals; None when the mesh has no std or it is constant).
     Raises:
         InputError: a mesh is missing, corrupt, empty or has no triangles.
     """
@@ -94,7 +118,8 @@ def evaluate_mesh(
     recon = load_mesh(mesh_path, "reconstructed mesh")
     reference = load_mesh(reference_path, "reference mesh")
     registration = dict(registration or {})
-    params = {"n_points": int(n_points), "seed": int(seed), "sampler": SAMPLER, "registration": registration}
+    params = {"n_points": int(n_points), "seed": int(seed), "sampler": SAMPLER, "registration": registration,
+              "metrics_version": METRICS_VERSION}
     inputs = _fingerprint(
         mesh_path, reference_path, (cam_centers, gt_cam_centers, cam_rotations, gt_cam_rotations), params
     )
@@ -134,6 +159,14 @@ def evaluate_mesh(
     recon_reg = o3d.geometry.TriangleMesh(recon)
     recon_reg.vertices = o3d.utility.Vector3dVector(T.apply(np.asarray(recon.vertices, dtype=np.float64)))
     vertex_residual = surface.distance(np.asarray(recon_reg.vertices))
+    # Does the mesh's own uncertainty point at its errors? Rank correlation over the vertices (NaN: constant std).
+    std = vertex_std(mesh_path, np.asarray(recon.vertices, dtype=np.float64))
+    metrics["std_residual_spearman"] = None
+    if std is not None and len(std) >= 3:
+        from endorecon.evaluation.depth_metrics import std_error_spearman
+
+        rho = std_error_spearman(std, vertex_residual, np.isfinite(std))
+        metrics["std_residual_spearman"] = None if not np.isfinite(rho) else rho
     save_residual_heatmap(
         recon_reg, vertex_residual, out_dir / HEATMAP_FILE, vmax_mm=vmax_mm, n_views=heatmap_views,
         title=f"{mesh_path.name}: mean {metrics['mean_mm']:.3f} mm, max {metrics['max_mm']:.3f} mm",

@@ -46,7 +46,8 @@ from endorecon.utils.io import atomic_path, atomic_write_text, file_id
 log = logging.getLogger(__name__)
 
 VARIANTS = ("full", "plain_fusion", "no_failure_pgo", "iteration0", "gt_upper_bound", "adapted")
-COLUMNS = ("mean_mm", "median_mm", "p95_mm", "max_mm", "frac_below_1mm", "abs_rel")
+# std_residual_spearman: how well the mesh's per-vertex std ranks its residuals (None: the mesh has no std)
+COLUMNS = ("mean_mm", "median_mm", "p95_mm", "max_mm", "frac_below_1mm", "abs_rel", "std_residual_spearman")
 
 
 def _last_iteration(fold_dir: Path) -> int:
@@ -306,16 +307,17 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
 
     lines = [",".join(fields)] + [",".join(cell(r, f) for f in fields) for r in rows]
     csv_path = atomic_write_text(out_dir / "results.csv", "\n".join(lines) + "\n")
-    md = ["| patient | variant | mean (mm) | median (mm) | p95 (mm) | max (mm) | < 1 mm | depth AbsRel |",
-          "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    md = ["| patient | variant | mean (mm) | median (mm) | p95 (mm) | max (mm) | < 1 mm | depth AbsRel | mesh std ρ |",
+          "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
 
     def fmt(r):
         ar = "" if r.get("abs_rel") is None else f"{r['abs_rel']:.3f}"
+        rho = "" if r.get("std_residual_spearman") is None else f"{r['std_residual_spearman']:+.2f}"
         if r["mean_mm"] is None:
-            return "| {} | {} | n/a | n/a | n/a | n/a | n/a | {} |".format(r["patient"], r["variant"], ar)
-        return "| {} | {} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0%} | {} |".format(
+            return "| {} | {} | n/a | n/a | n/a | n/a | n/a | {} | |".format(r["patient"], r["variant"], ar)
+        return "| {} | {} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0%} | {} | {} |".format(
             r["patient"], r["variant"] + ("*" if r.get("refused") else ""), r["mean_mm"], r["median_mm"], r["p95_mm"],
-            r["max_mm"], r["frac_below_1mm"], ar)
+            r["max_mm"], r["frac_below_1mm"], ar, rho)
 
     md += [fmt(r) for r in rows]
     refused = sorted({d for r in rows for d in (r.get("refused") or [])})

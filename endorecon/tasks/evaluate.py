@@ -89,6 +89,9 @@ def print_metrics(metrics: dict, out: Path) -> None:
         table.add_row(label, f"{metrics[key]:.3f} mm")
     table.add_row("fraction < 1 mm", f"{100 * metrics['frac_below_1mm']:.1f} %")
     table.add_row("points", str(metrics["n_points"]))
+    rho = metrics.get("std_residual_spearman")
+    if rho is not None:  # near 0 or negative: the mesh's std colours do not show where it is wrong
+        table.add_row("std vs residual (Spearman, vertices)", f"{rho:+.3f}")
     reg = metrics["registration"]
     table.add_row("registration", f"{reg['init']}, scale {metrics['sim3']['scale']:.5g}, fitness {reg['fitness']:.3f}")
     Console().print(table)

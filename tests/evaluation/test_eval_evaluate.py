@@ -58,6 +58,37 @@ def test_known_normal_offset(tmp_path):
     assert m["median_mm"] == pytest.approx(1.5, abs=2e-3) and m["frac_below_1mm"] == 0.0
 
 
+def _tilted_patch_with_std(path, sign):
+    # A 10x10 mm patch over the cube's top face, its height above it growing with x (0.2 .. 1.2 mm), and a
+    # per-vertex std of +-(that height): a std that ranks the residuals exactly, or exactly backwards.
+    from endorecon.fusion.ply import write_mesh_ply
+
+    patch = o3d.geometry.TriangleMesh.create_box(10.0, 10.0, 1e-3).subdivide_midpoint(3)
+    v = np.asarray(patch.vertices).copy()
+    v[:, 0] += 5.0
+    v[:, 1] += 5.0
+    height = 0.2 + 0.1 * (v[:, 0] - 5.0)
+    v[:, 2] = 20.0 + height + v[:, 2]
+    tm = o3d.t.geometry.TriangleMesh()
+    tm.vertex.positions = o3d.core.Tensor(v.astype(np.float32))
+    tm.triangle.indices = o3d.core.Tensor(np.asarray(patch.triangles).astype(np.int32))
+    tm.vertex["std"] = o3d.core.Tensor((sign * height)[:, None].astype(np.float32))
+    return write_mesh_ply(path, tm)
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_std_residual_spearman(sign, tmp_path):
+    ref = _write(o3d.geometry.TriangleMesh.create_box(20.0, 20.0, 20.0), tmp_path / "cube.ply")
+    rec = _tilted_patch_with_std(tmp_path / f"patch{sign:+.0f}.ply", sign)
+    m = evaluate_mesh(rec, ref, tmp_path / "out", n_points=2000, registration={"init": "identity", "max_iter": 0})
+    # Distinct heights tie only within a column of vertices, so rho is near, not at, +-1.
+    assert m["std_residual_spearman"] == pytest.approx(sign, abs=0.02)
+    # The same surface without a std (any other mesh): no ranking, stated as None.
+    plain = _write(load_mesh(rec), tmp_path / "plain.ply")
+    m = evaluate_mesh(plain, ref, tmp_path / "out_plain", n_points=2000, registration={"init": "identity", "max_iter": 0})
+    assert m["std_residual_spearman"] is None
+
+
 def test_noisy_moved_reconstruction(ct_mesh, recon_from_ct, helpers, tmp_path):
     # A reconstruction with 0.2 mm normal noise, in arbitrary units: the residual is that noise, in mm.
     rng = np.random.default_rng(0)

@@ -111,11 +111,14 @@ def test_results_table_of_the_debug_fold(debug_run, tmp_path):
     by = {r["variant"]: r for r in rows}
     assert by["gt_upper_bound"]["mean_mm"] < 0.2  # GT depth at GT poses fuses almost exactly
     assert by["gt_upper_bound"]["abs_rel"] is None and 0 < by["adapted"]["abs_rel"] < 1
+    # The adaptive fusion's meshes carry a std, so the table says how well it ranks their residuals.
+    for v in ("full", "iteration0", "no_failure_pgo", "adapted"):
+        assert -1 <= by[v]["std_residual_spearman"] <= 1, by[v]
     a = json.loads((tmp_path / "fold=0" / "adapted" / "patient_00__seq_00" / "adaptation" / "adapt.json").read_text())
     assert a["steps"] == 2 and np.isfinite(a["loss_before"])  # debug: 1 epoch x 2 batches
     csv_path, md_path = ablation.write_table(rows, tmp_path)
     md = md_path.read_text()
-    assert "| **mean** | adapted |" in md and "depth AbsRel" in md
+    assert "| **mean** | adapted |" in md and "depth AbsRel" in md and "mesh std ρ" in md
     assert len(csv_path.read_text().splitlines()) == 1 + len(rows)
 
 
