@@ -256,17 +256,22 @@ class _TSDFBase:
         Kc[1, 2] += 0.5
         return Kc
 
-    def _touch_blocks(self, depth: torch.Tensor, K: np.ndarray, T: np.ndarray, trunc_voxels: float) -> o3c.Tensor:
+    @property
+    def _o3d_depth_max(self) -> float:
+        # Open3D takes a finite depth_max
+        return self.depth_max if np.isfinite(self.depth_max) else 1e30
+
+    def _touch_blocks(self, depth: torch.Tensor, K: np.ndarray, T: np.ndarray, trunc_voxels: float,
+                      img: o3d.t.geometry.Image | None = None) -> o3c.Tensor:
         """Blocks of the truncation band of a cleaned depth map (0 = unusable), (M, 3) int32.
 
         Open3D's ``compute_unique_block_coordinates`` looks at every 4th pixel only; when that finds no
         block although the frame has usable pixels (a few pixels left after ``depth_max``), it raises.
         Then the band is walked at every usable pixel instead (:func:`pixel_band_blocks`)."""
-        img = o3d.t.geometry.Image(_o3c_from_torch(depth))
-        dmax = self.depth_max if np.isfinite(self.depth_max) else 1e30
+        img = o3d.t.geometry.Image(_o3c_from_torch(depth)) if img is None else img
         try:
             return self.vbg.compute_unique_block_coordinates(
-                img, o3c.Tensor(self._corner_K(K)), o3c.Tensor(T), 1.0, dmax, float(trunc_voxels))
+                img, o3c.Tensor(self._corner_K(K)), o3c.Tensor(T), 1.0, self._o3d_depth_max, float(trunc_voxels))
         except RuntimeError as e:
             if "No block is touched" not in str(e):
                 raise
@@ -487,14 +492,13 @@ class PlainTSDF(_TSDFBase):
         depth, _, color, widest = clean_frame(depth, None, color, mask, self._params)
         if float(widest) <= 0:
             return
-        Kc = o3c.Tensor(self._corner_K(K))
-        Tt = o3c.Tensor(T)
         img = o3d.t.geometry.Image(_o3c_from_torch(depth))
-        dmax = self.depth_max if np.isfinite(self.depth_max) else 1e30
-        bc = self._touch_blocks(depth, K, T, self.trunc_voxels)
+        bc = self._touch_blocks(depth, K, T, self.trunc_voxels, img)
         if bc.shape[0] == 0:
             return
-        self.vbg.integrate(bc, img, o3d.t.geometry.Image(_o3c_from_torch(color)), Kc, Kc, Tt, 1.0, dmax, self.trunc_voxels)
+        Kc = o3c.Tensor(self._corner_K(K))
+        self.vbg.integrate(bc, img, o3d.t.geometry.Image(_o3c_from_torch(color)), Kc, Kc, o3c.Tensor(T), 1.0,
+                           self._o3d_depth_max, self.trunc_voxels)
 
 
 class _MaybeCompiled:
