@@ -121,6 +121,7 @@ def depth_consistency_loss(
     mask_i: torch.Tensor,
     eps: float = 1e-8,
     reduction: str = "mean",
+    std_pose: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Depth Consistency loss: frame j's depth warped into i vs frame i's depth.
 
@@ -133,10 +134,16 @@ def depth_consistency_loss(
         depth_i, std_i, depth_j, std_j: (B, 1, H, W) scaled predictions.
         K: (B, 3, 3) pixel-centre intrinsics.  cam_j_from_cam_i: (B, 4, 4).
         mask_i: (B, 1, H, W) bool.
+        std_pose: optional (B, 4, 4) cam_j_from_cam_i at which std_j is carried into i (default:
+            ``cam_j_from_cam_i``); no gradient flows into it.  Pose graph optimisation passes the initial poses: then
+            σ² does not depend on the poses being optimised, so its log term cannot pull them (data that
+            agree exactly at a pose make that pose a stationary point).
     Returns:
         scalar ("mean") or (B,) ("none").
     """
     shape = check_shape(depth_i, "depth_i", (None, 1, None, None))
+    if std_pose is not None:
+        check_shape(std_pose, "std_pose", (shape[0], 4, 4))
     for x, name in ((std_i, "std_i"), (depth_j, "depth_j"), (std_j, "std_j"), (mask_i, "mask_i")):
         _check_map(x, name, shape)
     m_i = mask_i.bool() & torch.isfinite(depth_i) & torch.isfinite(std_i)
@@ -146,6 +153,10 @@ def depth_consistency_loss(
     s_j = _safe(std_j, ok_j, 0.0)
     warped, valid, std_w = warp_depth(d_j, d_i, K, cam_j_from_cam_i, std_j=s_j)
     valid = valid & m_i
+    if std_pose is not None:
+        _, valid0, std_w0 = warp_depth(d_j, d_i, K, std_pose.detach().to(d_i.dtype), std_j=s_j)
+        # where the warp at std_pose misses j, std_i stands in for j's: independent of the pose as well
+        std_w = torch.where(valid0, std_w0, _safe(std_i, m_i, 0.0))
     var = _safe(std_i, valid, 1.0) ** 2 + _safe(std_w, valid, 0.0) ** 2
     nll = gaussian_nll(_safe(warped, valid, 1.0), _safe(d_i, valid, 1.0), var, eps)
     return _reduce(nll, valid, reduction)
@@ -189,6 +200,7 @@ def sparse_flow_loss(
     reduction: str = "mean",
     flow_std_floor: float = 1e-3,
     min_depth: float = 1e-6,
+    std_pose: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Sparse Flow loss: flow implied by the predicted depth and the relative pose vs SfM flow.
 
@@ -204,10 +216,16 @@ def sparse_flow_loss(
         K: (B, 3, 3).  cam_j_from_cam_i: (B, 4, 4).
         sparse_flow_ij: (B, 2, H, W) pixel displacement i -> j at the points' pixels in i.
         sparse_flow_valid_ij: (B, 1, H, W) bool.
+        std_pose: optional (B, 4, 4) cam_j_from_cam_i at which the depth std is propagated to the flow
+            (default: ``cam_j_from_cam_i``); no gradient flows into it.  ∂flow/∂d grows with the baseline, so with
+            free poses the log σ² term alone pulls them towards shorter baselines; pose graph optimisation
+            passes the initial poses so that it cannot (exact flow at a pose makes it a stationary point).
     Returns:
         scalar ("mean") or (B,) ("none").
     """
     shape = check_shape(depth_i, "depth_i", (None, 1, None, None))
+    if std_pose is not None:
+        check_shape(std_pose, "std_pose", (shape[0], 4, 4))
     _check_map(std_i, "std_i", shape)
     _check_map(sparse_flow_ij, "sparse_flow_ij", shape, channels=2)
     _check_map(sparse_flow_valid_ij, "sparse_flow_valid_ij", shape)
@@ -224,7 +242,13 @@ def sparse_flow_loss(
     valid = valid & (z_j > min_depth)
     z_j = _safe(z_j, valid, 1.0)
     size = torch.tensor([W, H], dtype=d.dtype, device=d.device).view(1, 2, 1, 1)
-    jac = flow_depth_derivative(d, K, cam_j_from_cam_i, z_j) / size
+    if std_pose is None:
+        jac = flow_depth_derivative(d, K, cam_j_from_cam_i, z_j) / size
+    else:
+        T0 = std_pose.detach().to(d.dtype)
+        _, z0 = flow_from_depth(d, K, T0)
+        valid = valid & (z0 > min_depth)  # points behind camera j at std_pose: left out, whatever the pose
+        jac = flow_depth_derivative(d, K, T0, _safe(z0, valid, 1.0)) / size
     var = (jac * _safe(std_i, valid, 1.0)) ** 2 + flow_std_floor**2
     obs = _safe(sparse_flow_ij, valid.expand(-1, 2, -1, -1), 0.0) / size
     nll = gaussian_nll(obs, flow / size, var, eps).sum(1, keepdim=True)

@@ -235,3 +235,55 @@ def test_sparse_flow_gradcheck_including_pose():
     valid = torch.rand(1, 1, h, w, generator=g) < 0.7
     fn = lambda a, b, t: sparse_flow_loss(a, b, K, t, flow, valid, flow_std_floor=1e-2, reduction="none")  # noqa: E731
     assert torch.autograd.gradcheck(fn, (d, s, T))
+
+
+# ---------------------------------------------------------------- std carried at a fixed pose (PGO)
+def _twist_pose(T, xi):
+    from endorecon.geometry import se3_exp
+
+    return se3_exp(xi) @ T
+
+
+def test_std_pose_equal_to_the_pose_changes_nothing():
+    g = torch.Generator().manual_seed(11)
+    d_i = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) * 0.2 + 4
+    d_j = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) * 0.2 + 4
+    s = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) * 0.2 + 0.1
+    T, K = _pose(tx=0.3, angle=0.05, B=2), _K(2)
+    mask = _rand_mask(2, 0.8, seed=12)
+    flow = torch.randn(2, 2, H, W, generator=g, dtype=torch.float64)
+    for fn in (lambda **k: depth_consistency_loss(d_i, s, d_j, s, K, T, mask, reduction="none", **k),
+               lambda **k: sparse_flow_loss(d_i, s, K, T, flow, mask, reduction="none", **k)):
+        torch.testing.assert_close(fn(std_pose=T.clone()), fn(), rtol=1e-12, atol=1e-12)
+
+
+def test_std_pose_makes_exact_flow_a_stationary_point_of_the_pose():
+    """Flow that the depth and pose reproduce exactly: with the std propagated at that fixed pose the NLL's
+    gradient w.r.t. the pose is 0; with the std propagated at the free pose, log σ² alone has a gradient
+    (∂flow/∂d grows with the baseline), which is what would pull PGO's poses off."""
+    depth, std, K, T, flow, valid = _flow_case(tx=0.4)
+    xi = torch.zeros(1, 6, dtype=torch.float64, requires_grad=True)
+    frozen = sparse_flow_loss(depth, std, K, _twist_pose(T, xi), flow, valid, std_pose=T)
+    (g_frozen,) = torch.autograd.grad(frozen, xi)
+    free = sparse_flow_loss(depth, std, K, _twist_pose(T, xi), flow, valid)
+    (g_free,) = torch.autograd.grad(free, xi)
+    assert g_frozen.abs().max() < 1e-9
+    assert g_free.abs().max() > 1e-3
+
+
+def test_std_pose_gradchecks():
+    g = torch.Generator().manual_seed(13)
+    h, w = 5, 6
+    K = torch.tensor([[[6.0, 0.0, 2.5], [0.0, 6.0, 2.0], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+    d = (torch.rand(1, 1, h, w, generator=g, dtype=torch.float64) * 0.3 + 4).requires_grad_()
+    d_j = (torch.rand(1, 1, h, w, generator=g, dtype=torch.float64) * 0.3 + 4).requires_grad_()
+    s = (torch.rand(1, 1, h, w, generator=g, dtype=torch.float64) * 0.3 + 0.1).requires_grad_()
+    T = _pose(tx=0.3, ty=0.1, tz=0.2, angle=0.05).requires_grad_()
+    T0 = _pose(tx=0.25, ty=0.1, tz=0.2, angle=0.04)
+    flow = torch.randn(1, 2, h, w, generator=g, dtype=torch.float64)
+    valid = torch.rand(1, 1, h, w, generator=g) < 0.7
+    mask = torch.ones(1, 1, h, w, dtype=torch.bool)
+    flow_fn = lambda a, b, t: sparse_flow_loss(a, b, K, t, flow, valid, flow_std_floor=1e-2, std_pose=T0)  # noqa: E731
+    cons_fn = lambda a, b, c, t: depth_consistency_loss(a, b, c, b, K, t, mask, std_pose=T0)  # noqa: E731
+    assert torch.autograd.gradcheck(flow_fn, (d, s, T))
+    assert torch.autograd.gradcheck(cons_fn, (d, s, d_j, T))

@@ -38,8 +38,8 @@ def pose_errors(T, T_gt):
     return float(rot[1:].mean()), float(trans[1:].mean())
 
 
-def optimize(scene, T_init, **cfg):
-    flow_fn = lambda i, j: scene.sparse_flow_fn(i, j, noise_px=0.2)  # noqa: E731
+def optimize(scene, T_init, noise_px=0.2, **cfg):
+    flow_fn = lambda i, j: scene.sparse_flow_fn(i, j, noise_px=noise_px)  # noqa: E731
     depth = scene.depth.to(F)
     return optimize_poses(depth, 0.05 * depth, scene.K.to(F), T_init, scene.mask, flow_fn, {"progress": False, **cfg})
 
@@ -64,16 +64,19 @@ def test_perturbed_poses_are_pulled_back(scene):
     assert len(res.history) == 60 and len(res.edges) == 2 * (7 + 6 + 5 + 4)
 
 
-def test_ground_truth_poses_stay_put_and_unregistered_frames_stay_nan(scene):
+# Exact flow: GT is the objective's minimum and the poses stay there.  With 0.2 px of flow noise the minimum
+# moves off GT (measured: 0.10 deg, 1.8e-3 depth units), within what the perturbed poses above end at.
+@pytest.mark.parametrize("noise_px, max_rot_deg, max_trans", [(0.0, 0.01, 1e-4), (0.2, 0.2, 4e-3)])
+def test_ground_truth_poses_stay_put_and_unregistered_frames_stay_nan(scene, noise_px, max_rot_deg, max_trans):
     T_init = scene.cam_from_world.clone()
     T_init[11] = float("nan")
-    res = optimize(scene, T_init, iterations=20)
+    res = optimize(scene, T_init, noise_px=noise_px, iterations=20)
     assert torch.isnan(res.cam_from_world[11]).all() and torch.isnan(res.update_rotation_deg[11])
     assert all(11 not in e for e in res.edges)
     keep = list(range(11))
     rot, tr = pose_errors(res.cam_from_world[keep], scene.cam_from_world[keep])
-    print(f"from GT: rotation error {rot:.4f}°, translation error {tr:.5f}")
-    assert rot < 0.1 and tr < 2e-3
+    print(f"from GT, flow noise {noise_px} px: rotation error {rot:.4f}°, translation error {tr:.5f}")
+    assert rot < max_rot_deg and tr < max_trans
     assert res.loss_after <= res.loss_before + 1e-3 * abs(res.loss_before)
 
 
