@@ -414,7 +414,7 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         rows.append(f"| {name} | {s['seconds']:.1f} | {note} |")
         if name.startswith("failure"):
             labels = dict(fusion_s="fusion + simulated depth", failure_s="failure detection", pgo_s="dense PGO",
-                          fusion2_s="fusion again + mesh")
+                          resfm_s="SfM rerun of flagged ranges", fusion2_s="fusion again + mesh")
             rows += [f"| &nbsp;&nbsp;{labels.get(k, k)} | {v:.1f} | |" for k, v in sub.items()]
     mesh_info = _mesh_info(out / "mesh.ply")
     lines = [
@@ -427,7 +427,7 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         f"- test-time adaptation: {_adapt_line(adapt_info)}",
         f"- mesh: `mesh.ply` ({mesh_info}; coloured, per-vertex std), refined poses: `reconstruction/poses.txt`, "
         f"failure metrics: `reconstruction/failures.csv`",
-        f"- dense PGO: {summary.get('pgo') or 'disabled'}",
+        f"- dense PGO: {_pgo_line(summary.get('pgo'))}",
         "",
         "| stage | time (s) | |",
         "| --- | ---: | --- |",
@@ -443,6 +443,17 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
     atomic_write_text(out / "timings.json", json.dumps(dict(stages=stages, refine=sub, total_s=total,
                                                             this_run_s=now), indent=2) + "\n")
     return out / "report.md"
+
+
+def _pgo_line(pgo: dict | None) -> str:
+    if not pgo:
+        return "off (pgo.enabled=false)"
+    rot_med, rot_max = pgo.get("update_rotation_deg_median"), pgo.get("update_rotation_deg_max")
+    tr_med, tr_max = pgo.get("update_translation_median"), pgo.get("update_translation_max")
+    moved = ("no registered frame moved" if rot_max is None else
+             f"pose updates {rot_med:.3g}° median / {rot_max:.3g}° max in rotation, "
+             f"{tr_med:.3g} / {tr_max:.3g} in camera centre (SfM units)")
+    return f"objective {pgo['loss_before']:.6g} -> {pgo['loss_after']:.6g}; {moved}"
 
 
 def _adapt_line(info: dict | None) -> str:

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -261,6 +262,7 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     for stage in ("input", "sfm", "adaptation", "inference", "dense PGO", "fusion again", "**total**"):
         assert stage in report
     assert "test-time adaptation: 2 steps" in report
+    assert re.search(r"dense PGO: objective -?[\d.e+-]+ -> -?[\d.e+-]+; pose updates [\d.e+-]+° median", report)
     first = json.loads((run_dir / "timings.json").read_text())["stages"]
     assert not any(s["skipped"] for s in first.values())
     mesh_bytes = (run_dir / "mesh.ply").read_bytes()
