@@ -65,8 +65,8 @@ def test_perturbed_poses_are_pulled_back(scene):
 
 
 # Exact flow: GT is the objective's minimum and the poses stay there.  With 0.2 px of flow noise the minimum
-# moves off GT (measured: 0.10 deg, 1.8e-3 depth units), within what the perturbed poses above end at.
-@pytest.mark.parametrize("noise_px, max_rot_deg, max_trans", [(0.0, 0.01, 1e-4), (0.2, 0.2, 4e-3)])
+# moves off GT (measured: 0.073 deg, 1.4e-3 depth units; 0.10 deg with the stds carried at the free poses).
+@pytest.mark.parametrize("noise_px, max_rot_deg, max_trans", [(0.0, 0.01, 1e-4), (0.2, 0.1, 2e-3)])
 def test_ground_truth_poses_stay_put_and_unregistered_frames_stay_nan(scene, noise_px, max_rot_deg, max_trans):
     T_init = scene.cam_from_world.clone()
     T_init[11] = float("nan")
