@@ -111,6 +111,43 @@ def dense_simulation_loss(
     return _pixel_nll(depth, std, sim_depth, sim_valid, eps, reduction)
 
 
+def _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i):
+    """Non-finite values set to 0 (= invalid to the warp); returns m_i, d_i, d_j, s_j."""
+    m_i = mask_i.bool() & torch.isfinite(depth_i) & torch.isfinite(std_i)
+    ok_j = torch.isfinite(depth_j) & torch.isfinite(std_j)
+    return m_i, _safe(depth_i, m_i, 0.0), _safe(depth_j, ok_j, 0.0), _safe(std_j, ok_j, 0.0)
+
+
+def carried_std(
+    depth_i: torch.Tensor,
+    std_i: torch.Tensor,
+    depth_j: torch.Tensor,
+    std_j: torch.Tensor,
+    K: torch.Tensor,
+    cam_j_from_cam_i: torch.Tensor,
+    mask_i: torch.Tensor,
+) -> torch.Tensor:
+    """Frame j's depth std carried into frame i's pixels at the pose ``cam_j_from_cam_i``, for
+    :func:`depth_consistency_loss`'s ``std_j_in_i``.
+
+    Where that warp misses j, std_i stands in for j's std (so that the result is defined at every
+    pixel the loss may use at any other pose).  Differentiable w.r.t. the depths, stds and pose.
+
+    Args:
+        depth_i, std_i, depth_j, std_j: (B, 1, H, W).  K: (B, 3, 3).  cam_j_from_cam_i: (B, 4, 4).
+        mask_i: (B, 1, H, W) bool.
+    Returns:
+        (B, 1, H, W) std, 0 outside mask_i.
+    """
+    shape = check_shape(depth_i, "depth_i", (None, 1, None, None))
+    for x, name in ((std_i, "std_i"), (depth_j, "depth_j"), (std_j, "std_j"), (mask_i, "mask_i")):
+        _check_map(x, name, shape)
+    check_shape(cam_j_from_cam_i, "cam_j_from_cam_i", (shape[0], 4, 4))
+    m_i, d_i, d_j, s_j = _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i)
+    _, valid, std_w = warp_depth(d_j, d_i, K, cam_j_from_cam_i.to(d_i.dtype), std_j=s_j)
+    return torch.where(valid, std_w, _safe(std_i, m_i, 0.0))
+
+
 def depth_consistency_loss(
     depth_i: torch.Tensor,
     std_i: torch.Tensor,
@@ -122,6 +159,7 @@ def depth_consistency_loss(
     eps: float = 1e-8,
     reduction: str = "mean",
     std_pose: torch.Tensor | None = None,
+    std_j_in_i: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Depth Consistency loss: frame j's depth warped into i vs frame i's depth.
 
@@ -138,25 +176,27 @@ def depth_consistency_loss(
             ``cam_j_from_cam_i``); no gradient flows into it.  Pose graph optimisation passes the initial poses: then
             σ² does not depend on the poses being optimised, so its log term cannot pull them (data that
             agree exactly at a pose make that pose a stationary point).
+        std_j_in_i: optional (B, 1, H, W) std_j already carried into i (:func:`carried_std` at std_pose), so that
+            a caller evaluating many poses computes it once; excludes ``std_pose``.
     Returns:
         scalar ("mean") or (B,) ("none").
     """
     shape = check_shape(depth_i, "depth_i", (None, 1, None, None))
+    if std_pose is not None and std_j_in_i is not None:
+        raise ValueError("pass std_pose or std_j_in_i (carried_std at std_pose), not both")
     if std_pose is not None:
         check_shape(std_pose, "std_pose", (shape[0], 4, 4))
     for x, name in ((std_i, "std_i"), (depth_j, "depth_j"), (std_j, "std_j"), (mask_i, "mask_i")):
         _check_map(x, name, shape)
-    m_i = mask_i.bool() & torch.isfinite(depth_i) & torch.isfinite(std_i)
-    d_i = _safe(depth_i, m_i, 0.0)
-    ok_j = torch.isfinite(depth_j) & torch.isfinite(std_j)
-    d_j = _safe(depth_j, ok_j, 0.0)
-    s_j = _safe(std_j, ok_j, 0.0)
-    warped, valid, std_w = warp_depth(d_j, d_i, K, cam_j_from_cam_i, std_j=s_j)
-    valid = valid & m_i
     if std_pose is not None:
-        _, valid0, std_w0 = warp_depth(d_j, d_i, K, std_pose.detach().to(d_i.dtype), std_j=s_j)
-        # where the warp at std_pose misses j, std_i stands in for j's: independent of the pose as well
-        std_w = torch.where(valid0, std_w0, _safe(std_i, m_i, 0.0))
+        std_j_in_i = carried_std(depth_i, std_i, depth_j, std_j, K, std_pose.detach(), mask_i)
+    if std_j_in_i is not None:
+        _check_map(std_j_in_i, "std_j_in_i", shape)
+    m_i, d_i, d_j, s_j = _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i)
+    warped, valid, std_w = warp_depth(d_j, d_i, K, cam_j_from_cam_i, std_j=s_j if std_j_in_i is None else None)
+    valid = valid & m_i
+    if std_j_in_i is not None:
+        std_w = std_j_in_i.to(d_i.dtype)
     var = _safe(std_i, valid, 1.0) ** 2 + _safe(std_w, valid, 0.0) ** 2
     nll = gaussian_nll(_safe(warped, valid, 1.0), _safe(d_i, valid, 1.0), var, eps)
     return _reduce(nll, valid, reduction)
@@ -189,6 +229,40 @@ def flow_depth_derivative(
     return torch.cat([fx * dx + s * dy, fy * dy], 1)
 
 
+def propagated_flow_std(
+    depth_i: torch.Tensor,
+    std_i: torch.Tensor,
+    K: torch.Tensor,
+    cam_j_from_cam_i: torch.Tensor,
+    min_depth: float = 1e-6,
+) -> torch.Tensor:
+    """Std of the flow i -> j implied by depth_i, propagated from std_i at the pose ``cam_j_from_cam_i``
+    (σ_u = |∂u/∂d|·σ_d / W, σ_v = |∂v/∂d|·σ_d / H), for :func:`sparse_flow_loss`'s ``flow_std_ij``.
+
+    Args:
+        depth_i, std_i: (B, 1, H, W).  K: (B, 3, 3).  cam_j_from_cam_i: (B, 4, 4).
+    Returns:
+        (B, 2, H, W) std in image-size units; NaN where the depth or std is not finite, the depth is
+        <= min_depth or the point lies behind camera j.
+    """
+    shape = check_shape(depth_i, "depth_i", (None, 1, None, None))
+    _check_map(std_i, "std_i", shape)
+    check_shape(cam_j_from_cam_i, "cam_j_from_cam_i", (shape[0], 4, 4))
+    ok = torch.isfinite(depth_i) & torch.isfinite(std_i) & (depth_i > min_depth)
+    d = _safe(depth_i, ok, 1.0)
+    T = cam_j_from_cam_i.to(d.dtype)
+    _, z_j = flow_from_depth(d, K, T)
+    ok = ok & (z_j > min_depth)
+    jac = flow_depth_derivative(d, K, T, _safe(z_j, ok, 1.0)) / _image_size(shape, d)
+    sigma = jac * _safe(std_i, ok, 1.0)
+    return torch.where(ok, sigma, torch.full_like(sigma, float("nan")))
+
+
+def _image_size(shape, like: torch.Tensor) -> torch.Tensor:
+    """(1, 2, 1, 1): (W, H), the flow normalisation."""
+    return torch.tensor([shape[3], shape[2]], dtype=like.dtype, device=like.device).view(1, 2, 1, 1)
+
+
 def sparse_flow_loss(
     depth_i: torch.Tensor,
     std_i: torch.Tensor,
@@ -201,6 +275,7 @@ def sparse_flow_loss(
     flow_std_floor: float = 1e-3,
     min_depth: float = 1e-6,
     std_pose: torch.Tensor | None = None,
+    flow_std_ij: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Sparse Flow loss: flow implied by the predicted depth and the relative pose vs SfM flow.
 
@@ -220,16 +295,24 @@ def sparse_flow_loss(
             (default: ``cam_j_from_cam_i``); no gradient flows into it.  ∂flow/∂d grows with the baseline, so with
             free poses the log σ² term alone pulls them towards shorter baselines; pose graph optimisation
             passes the initial poses so that it cannot (exact flow at a pose makes it a stationary point).
+            Points behind camera j at std_pose are left out.
+        flow_std_ij: optional (B, 2, H, W) flow std already propagated (:func:`propagated_flow_std` at std_pose;
+            NaN = left out), so that a caller evaluating many poses computes it once; excludes ``std_pose``.
     Returns:
         scalar ("mean") or (B,) ("none").
     """
     shape = check_shape(depth_i, "depth_i", (None, 1, None, None))
+    if std_pose is not None and flow_std_ij is not None:
+        raise ValueError("pass std_pose or flow_std_ij (propagated_flow_std at std_pose), not both")
     if std_pose is not None:
         check_shape(std_pose, "std_pose", (shape[0], 4, 4))
     _check_map(std_i, "std_i", shape)
     _check_map(sparse_flow_ij, "sparse_flow_ij", shape, channels=2)
     _check_map(sparse_flow_valid_ij, "sparse_flow_valid_ij", shape)
-    B, _, H, W = shape
+    if std_pose is not None:
+        flow_std_ij = propagated_flow_std(depth_i, std_i, K, std_pose.detach(), min_depth)
+    if flow_std_ij is not None:
+        _check_map(flow_std_ij, "flow_std_ij", shape, channels=2)
     valid = (
         sparse_flow_valid_ij.bool()
         & torch.isfinite(sparse_flow_ij).all(1, keepdim=True)
@@ -240,16 +323,14 @@ def sparse_flow_loss(
     d = _safe(depth_i, valid, 1.0)
     flow, z_j = flow_from_depth(d, K, cam_j_from_cam_i)
     valid = valid & (z_j > min_depth)
-    z_j = _safe(z_j, valid, 1.0)
-    size = torch.tensor([W, H], dtype=d.dtype, device=d.device).view(1, 2, 1, 1)
-    if std_pose is None:
-        jac = flow_depth_derivative(d, K, cam_j_from_cam_i, z_j) / size
+    size = _image_size(shape, d)
+    if flow_std_ij is None:
+        jac = flow_depth_derivative(d, K, cam_j_from_cam_i, _safe(z_j, valid, 1.0)) / size
+        sigma = jac * _safe(std_i, valid, 1.0)
     else:
-        T0 = std_pose.detach().to(d.dtype)
-        _, z0 = flow_from_depth(d, K, T0)
-        valid = valid & (z0 > min_depth)  # points behind camera j at std_pose: left out, whatever the pose
-        jac = flow_depth_derivative(d, K, T0, _safe(z0, valid, 1.0)) / size
-    var = (jac * _safe(std_i, valid, 1.0)) ** 2 + flow_std_floor**2
+        valid = valid & torch.isfinite(flow_std_ij).all(1, keepdim=True)
+        sigma = _safe(flow_std_ij.to(d.dtype), valid.expand(-1, 2, -1, -1), 1.0)
+    var = sigma**2 + flow_std_floor**2
     obs = _safe(sparse_flow_ij, valid.expand(-1, 2, -1, -1), 0.0) / size
     nll = gaussian_nll(obs, flow / size, var, eps).sum(1, keepdim=True)
     nll = _safe(nll, valid, 0.0)  # pixels that fail only the z_j test may be non-finite

@@ -20,6 +20,8 @@ The stds enter each NLL as they are carried between the frames at the initial
 (SfM) poses (``freeze_std``, the losses' ``std_pose``): propagated at the free
 poses, the log-variance terms alone would pull the poses towards shorter
 baselines (on the test scene with exact data, 0.07 deg off the true poses).
+Being constants, they are computed once per edge before optimising (the
+consistency stds only while ``edges x H x W`` values fit ``std_cache_mb``).
 The default optimiser is L-BFGS (strong Wolfe line search with up to
 ``line_search_evals`` evaluations), restarted with a halved step when a line
 search stalls.  The objective is first-order only and
@@ -41,7 +43,7 @@ import torch
 
 from endorecon.geometry import invert_pose, rotation_angle_deg, se3_exp
 from endorecon.geometry._checks import check_shape
-from endorecon.losses import depth_consistency_loss, sparse_flow_loss
+from endorecon.losses import carried_std, depth_consistency_loss, propagated_flow_std, sparse_flow_loss
 
 DEFAULTS = {
     "neighbors": [5, 6, 7, 8],
@@ -53,6 +55,7 @@ DEFAULTS = {
     "lr": 1.0,
     "line_search_evals": 10,
     "freeze_std": True,
+    "std_cache_mb": 512,
     "normalize_depth": True,
     "edge_chunk": 32,
     "min_flow_points": 3,
@@ -102,46 +105,84 @@ class PGOResult:
 
 
 class _Edges:
-    """Edge list with its sparse flows stored as (pixel index, flow) pairs, densified per chunk."""
+    """Edge list with its sparse flows stored as (pixel index, flow) pairs, densified per chunk.
+
+    With frozen stds (:meth:`freeze_stds`) it also holds each edge's stds carried at the initial poses: the
+    flow std at the sparse pixels, and (when it fits the memory budget) the consistency term's carried
+    std_j, so that no objective evaluation recomputes these constants."""
 
     def __init__(self, edges, flows, H, W, dtype, device):
         self.edges = edges
         self.flows = flows  # per edge: None or (idx (M,), flow (M, 2))
         self.H, self.W, self.dtype, self.device = H, W, dtype, device
+        self.flow_std = None  # per edge: None or (M, 2) flow std at idx
+        self.cons_std = None  # (n_edges, 1, H, W) carried std_j, or None: carried per evaluation
 
     def dense(self, ks):
+        """Flows (B, 2, H, W), valid (B, 1, H, W), has-flow (B,) and, if frozen, flow stds (B, 2, H, W)."""
         B = len(ks)
         flow = torch.zeros(B, 2, self.H * self.W, dtype=self.dtype, device=self.device)
         valid = torch.zeros(B, 1, self.H * self.W, dtype=torch.bool, device=self.device)
         has = torch.zeros(B, dtype=torch.bool, device=self.device)
+        fstd = None if self.flow_std is None else torch.full_like(flow, float("nan"))
         for b, k in enumerate(ks):
             if self.flows[k] is not None:
                 idx, f = self.flows[k]
                 flow[b, :, idx] = f.T
                 valid[b, 0, idx] = True
                 has[b] = True
-        return flow.view(B, 2, self.H, self.W), valid.view(B, 1, self.H, self.W), has
+                if fstd is not None:
+                    fstd[b, :, idx] = self.flow_std[k].T
+        shape = (B, 2, self.H, self.W)
+        return flow.view(shape), valid.view(B, 1, self.H, self.W), has, None if fstd is None else fstd.view(shape)
+
+    def freeze_stds(self, T0, depth, std, K, mask, chunk: int, cache_mb: float) -> None:
+        """Carry the stds of every edge at the initial poses ``T0`` once (see :func:`_edge_losses`)."""
+        n = len(self.edges)
+        cache_cons = n * self.H * self.W * depth.element_size() <= cache_mb * 2**20
+        self.flow_std = [None] * n
+        cons = [] if cache_cons else None
+        with torch.no_grad():
+            for s in range(0, n, chunk):
+                ks = list(range(s, min(s + chunk, n)))
+                ii, jj, T_ji0 = self._pairs(ks, T0)
+                m = mask[None].expand(len(ks), -1, -1, -1)
+                if cache_cons:
+                    cons.append(carried_std(depth[ii], std[ii], depth[jj], std[jj], K[ii], T_ji0, m))
+                fs = propagated_flow_std(depth[ii], std[ii], K[ii], T_ji0).flatten(2)
+                for b, k in enumerate(ks):
+                    if self.flows[k] is not None:
+                        self.flow_std[k] = fs[b][:, self.flows[k][0]].T.contiguous()
+        self.cons_std = torch.cat(cons) if cache_cons else None
+
+    def _pairs(self, ks, T0):
+        ii = [self.edges[k][0] for k in ks]
+        jj = [self.edges[k][1] for k in ks]
+        return ii, jj, T0[jj] @ invert_pose(T0[ii])
 
 
-def _edge_losses(xi, T0, depth, std, K, mask, E: _Edges, ks, w_flow, w_cons, freeze_std: bool = True):
+def _edge_losses(xi, T0, depth, std, K, mask, E: _Edges, ks, w_flow, w_cons):
     """Weighted per-edge objective for the edges ``ks``: (len(ks),).
 
-    ``freeze_std``: the stds are carried between frames at the initial poses ``T0`` (see the losses'
-    ``std_pose``), so that the objective's log σ² terms are constants of the poses."""
-    ii = [E.edges[k][0] for k in ks]
-    jj = [E.edges[k][1] for k in ks]
+    When ``E`` has frozen stds (:meth:`_Edges.freeze_stds`), the stds are those carried between the frames
+    at the initial poses ``T0`` (the losses' ``std_pose``), so that the objective's log σ² terms are constants
+    of the poses; else they are carried at the current poses."""
+    ii, jj, T_ji0 = E._pairs(ks, T0)
     T_i = se3_exp(xi[ii]) @ T0[ii]
     T_j = se3_exp(xi[jj]) @ T0[jj]
     T_ji = T_j @ invert_pose(T_i)
-    T_ji0 = T0[jj] @ invert_pose(T0[ii]) if freeze_std else None
     Kb = K[ii]
     m = mask[None].expand(len(ks), -1, -1, -1)
-    cons = depth_consistency_loss(depth[ii], std[ii], depth[jj], std[jj], Kb, T_ji, m, reduction="none",
-                                  std_pose=T_ji0)
+    frozen = E.flow_std is not None
+    if frozen and E.cons_std is not None:
+        carried = {"std_j_in_i": E.cons_std[ks]}
+    else:
+        carried = {"std_pose": T_ji0} if frozen else {}
+    cons = depth_consistency_loss(depth[ii], std[ii], depth[jj], std[jj], Kb, T_ji, m, reduction="none", **carried)
     out = w_cons * cons
-    flow, valid, has = E.dense(ks)
+    flow, valid, has, flow_std = E.dense(ks)
     if has.any():
-        fl = sparse_flow_loss(depth[ii], std[ii], Kb, T_ji, flow, valid & m, reduction="none", std_pose=T_ji0)
+        fl = sparse_flow_loss(depth[ii], std[ii], Kb, T_ji, flow, valid & m, reduction="none", flow_std_ij=flow_std)
         out = out + w_flow * torch.where(has, fl, torch.zeros_like(fl))
     return out
 
@@ -225,6 +266,8 @@ def optimize_poses(
         flows.append((idx, f.to(device=dev, dtype=dt).flatten(1)[:, idx].T) if len(idx) >= min_pts else None)
     E = _Edges(pairs, flows, H, W, dt, dev)
     n_e = len(pairs)
+    if freeze_std:
+        E.freeze_stds(T0, depth_n, std_n, Kd, mask_b, chunk, float(_get(cfg, "std_cache_mb")))
 
     free = torch.tensor([registered[k] and k != fixed for k in range(N)], device=dev)[:, None].to(dt)
     xi = torch.zeros(N, 6, dtype=dt, device=dev, requires_grad=True)
@@ -233,7 +276,7 @@ def optimize_poses(
         total = 0.0
         for s in range(0, n_e, chunk):
             ks = list(range(s, min(s + chunk, n_e)))
-            loss = _edge_losses(xi * free, T0, depth_n, std_n, Kd, mask_b, E, ks, w_flow, w_cons, freeze_std).sum() / n_e
+            loss = _edge_losses(xi * free, T0, depth_n, std_n, Kd, mask_b, E, ks, w_flow, w_cons).sum() / n_e
             if backward:
                 loss.backward()  # per chunk: memory bounded by edge_chunk
             total += float(loss.detach())

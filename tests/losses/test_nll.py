@@ -7,10 +7,12 @@ import torch
 
 from endorecon.geometry import flow_from_depth
 from endorecon.losses import (
+    carried_std,
     dense_simulation_loss,
     depth_consistency_loss,
     flow_depth_derivative,
     gaussian_nll,
+    propagated_flow_std,
     sparse_depth_loss,
     sparse_flow_loss,
 )
@@ -287,3 +289,37 @@ def test_std_pose_gradchecks():
     cons_fn = lambda a, b, c, t: depth_consistency_loss(a, b, c, b, K, t, mask, std_pose=T0)  # noqa: E731
     assert torch.autograd.gradcheck(flow_fn, (d, s, T))
     assert torch.autograd.gradcheck(cons_fn, (d, s, d_j, T))
+
+
+def test_precomputed_stds_equal_std_pose_and_exclude_it():
+    """carried_std / propagated_flow_std at a pose, passed in, give exactly the std_pose loss (what PGO caches);
+    the flow std is NaN where the point lies behind camera j at that pose, and such points are left out."""
+    g = torch.Generator().manual_seed(14)
+    d_i = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) * 0.2 + 4
+    d_j = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) * 0.2 + 4
+    s = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) * 0.2 + 0.1
+    T, T0, K = _pose(tx=0.3, angle=0.05, B=2), _pose(tx=0.25, angle=0.04, B=2), _K(2)
+    mask = _rand_mask(2, 0.8, seed=15)
+    flow = torch.randn(2, 2, H, W, generator=g, dtype=torch.float64)
+    cons = depth_consistency_loss(d_i, s, d_j, s, K, T, mask, reduction="none", std_pose=T0)
+    carried = carried_std(d_i, s, d_j, s, K, T0, mask)
+    torch.testing.assert_close(depth_consistency_loss(d_i, s, d_j, s, K, T, mask, reduction="none",
+                                                      std_j_in_i=carried), cons, rtol=0, atol=0)
+    fl = sparse_flow_loss(d_i, s, K, T, flow, mask, reduction="none", std_pose=T0)
+    fstd = propagated_flow_std(d_i, s, K, T0)
+    torch.testing.assert_close(sparse_flow_loss(d_i, s, K, T, flow, mask, reduction="none", flow_std_ij=fstd),
+                               fl, rtol=0, atol=0)
+    # analytic case: no rotation, translation along x only: ∂u/∂d = -fx·tx/d², ∂v/∂d = 0
+    T1 = _pose(tx=0.3, B=2)
+    fx = float(K[0, 0, 0])
+    want_u = fx * 0.3 / d_i**2 * s / W
+    torch.testing.assert_close(propagated_flow_std(d_i, s, K, T1)[:, :1].abs(), want_u)
+    assert (propagated_flow_std(d_i, s, K, T1)[:, 1:] == 0).all()
+    behind = _pose(tz=-10.0, B=2)  # every point behind camera j
+    assert torch.isnan(propagated_flow_std(d_i, s, K, behind)).all()
+    assert (sparse_flow_loss(d_i, s, K, T, flow, mask, reduction="none",
+                             flow_std_ij=propagated_flow_std(d_i, s, K, behind)) == 0).all()
+    with pytest.raises(ValueError, match="not both"):
+        sparse_flow_loss(d_i, s, K, T, flow, mask, std_pose=T0, flow_std_ij=fstd)
+    with pytest.raises(ValueError, match="not both"):
+        depth_consistency_loss(d_i, s, d_j, s, K, T, mask, std_pose=T0, std_j_in_i=carried)
