@@ -111,6 +111,13 @@ def dense_simulation_loss(
     return _pixel_nll(depth, std, sim_depth, sim_valid, eps, reduction)
 
 
+def _check_pair(depth_i, std_i, depth_j, std_j, mask_i) -> tuple:
+    shape = check_shape(depth_i, "depth_i", (None, 1, None, None))
+    for x, name in ((std_i, "std_i"), (depth_j, "depth_j"), (std_j, "std_j"), (mask_i, "mask_i")):
+        _check_map(x, name, shape)
+    return shape
+
+
 def _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i):
     """Non-finite values set to 0 (= invalid to the warp); returns m_i, d_i, d_j, s_j."""
     m_i = mask_i.bool() & torch.isfinite(depth_i) & torch.isfinite(std_i)
@@ -139,9 +146,7 @@ def carried_std(
     Returns:
         (B, 1, H, W) std, 0 outside mask_i.
     """
-    shape = check_shape(depth_i, "depth_i", (None, 1, None, None))
-    for x, name in ((std_i, "std_i"), (depth_j, "depth_j"), (std_j, "std_j"), (mask_i, "mask_i")):
-        _check_map(x, name, shape)
+    shape = _check_pair(depth_i, std_i, depth_j, std_j, mask_i)
     check_shape(cam_j_from_cam_i, "cam_j_from_cam_i", (shape[0], 4, 4))
     m_i, d_i, d_j, s_j = _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i)
     _, valid, std_w = warp_depth(d_j, d_i, K, cam_j_from_cam_i.to(d_i.dtype), std_j=s_j)
@@ -181,14 +186,11 @@ def depth_consistency_loss(
     Returns:
         scalar ("mean") or (B,) ("none").
     """
-    shape = check_shape(depth_i, "depth_i", (None, 1, None, None))
+    shape = _check_pair(depth_i, std_i, depth_j, std_j, mask_i)
     if std_pose is not None and std_j_in_i is not None:
         raise ValueError("pass std_pose or std_j_in_i (carried_std at std_pose), not both")
     if std_pose is not None:
         check_shape(std_pose, "std_pose", (shape[0], 4, 4))
-    for x, name in ((std_i, "std_i"), (depth_j, "depth_j"), (std_j, "std_j"), (mask_i, "mask_i")):
-        _check_map(x, name, shape)
-    if std_pose is not None:
         std_j_in_i = carried_std(depth_i, std_i, depth_j, std_j, K, std_pose.detach(), mask_i)
     if std_j_in_i is not None:
         _check_map(std_j_in_i, "std_j_in_i", shape)

@@ -73,7 +73,13 @@ class FCDenseNet(nn.Module):
         dropout: Dropout2d after each conv (paper: 0.2).
         std_floor: added to the std head so that std > 0 always (NLL stability).
         min_depth: added to the depth head so that depth > 0 always.
-        image_mean, image_std: per-channel normalisation of the [0,1] input.
+        image_mean, image_std: per-channel normalisation of the [0,1] input (after ``input_transform``).
+        input_transform: ``"linear"`` (the image as it is) or ``"log"``: log(max(image, 1/255)).  With a
+            light at the camera and a gamma-encoded sensor, log intensity is about linear in log depth (inverse-
+            square fall-off), and the frame's exposure an additive offset.  ``"log_centered"``: the log image less
+            its per-channel mean over the mask (the whole frame without one): blind to a frame's exposure and
+            white balance (set image_mean to 0 for it).
+        depth_activation: ``"softplus"`` or ``"exp"`` (the head predicts log depth) for the depth head.
     """
 
     def __init__(
@@ -89,8 +95,15 @@ class FCDenseNet(nn.Module):
         min_depth: float = 1e-3,
         image_mean: Sequence[float] = (0.5, 0.5, 0.5),
         image_std: Sequence[float] = (0.25, 0.25, 0.25),
+        input_transform: str = "linear",
+        depth_activation: str = "softplus",
     ):
         super().__init__()
+        if input_transform not in ("linear", "log", "log_centered"):
+            raise ValueError(f"input_transform must be 'linear', 'log' or 'log_centered', got {input_transform!r}")
+        if depth_activation not in ("softplus", "exp"):
+            raise ValueError(f"depth_activation must be 'softplus' or 'exp', got {depth_activation!r}")
+        self.input_transform, self.depth_activation = input_transform, depth_activation
         down_layers = [int(n) for n in down_layers]
         up_layers = [int(n) for n in (up_layers if up_layers is not None else down_layers[::-1])]
         if len(up_layers) != len(down_layers) or not down_layers:
@@ -133,11 +146,17 @@ class FCDenseNet(nn.Module):
                 if m.bias is not None:
                     nn.init.zeros_(m.bias)
         # Small heads: a random init starts near depth ≈ 1, std ≈ 0.3 everywhere (finite NLL).
-        for head, bias in ((self.depth_head, 0.55), (self.std_head, -1.0)):
+        depth_bias = 0.55 if self.depth_activation == "softplus" else 0.0
+        for head, bias in ((self.depth_head, depth_bias), (self.std_head, -1.0)):
             nn.init.normal_(head.weight, std=1e-3)
             nn.init.constant_(head.bias, bias)
 
     def normalise(self, image: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        if self.input_transform != "linear":
+            image = torch.log(image.clamp(min=1.0 / 255))
+        if self.input_transform == "log_centered":
+            w = torch.ones_like(image[:, :1]) if mask is None else mask.to(image.dtype)
+            image = image - (image * w).sum((2, 3), keepdim=True) / w.sum((2, 3), keepdim=True).clamp(min=1.0)
         x = (image - self.image_mean) / self.image_std
         return x if mask is None else x * mask.to(x.dtype)
 
@@ -169,7 +188,9 @@ class FCDenseNet(nn.Module):
         x = self.bottleneck(x)
         for up, block in zip(self.trans_up, self.up_blocks):
             x = block(torch.cat([up(x), skips.pop()], 1))
-        depth = F.softplus(self.depth_head(x)) + self.min_depth
+        a = self.depth_head(x)
+        # exp: clamped so that a diverging step gives a large finite depth, not inf
+        depth = (F.softplus(a) if self.depth_activation == "softplus" else torch.exp(a.clamp(max=20.0))) + self.min_depth
         std = F.softplus(self.std_head(x)) + self.std_floor
         return depth, std
 

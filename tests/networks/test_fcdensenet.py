@@ -57,3 +57,31 @@ def test_gradients_flow_to_all_parameters():
     d, s = net(torch.rand(2, 3, 32, 40))
     (d.mean() + s.mean()).backward()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in net.parameters())
+
+
+def test_log_input_and_exp_depth():
+    # log input: a frame twice as bright is the same input plus log 2 before normalisation; the exp head
+    # starts at depth ~1 like the softplus one, and stays finite when its logit diverges
+    torch.manual_seed(0)
+    net = FCDenseNet(**TINY, input_transform="log", depth_activation="exp").eval()
+    img = 0.05 + 0.4 * torch.rand(1, 3, 32, 40)
+    x1, x2 = net.normalise(img, None), net.normalise(2 * img, None)
+    torch.testing.assert_close(x2 - x1, torch.full_like(x1, float(torch.log(torch.tensor(2.0)))) / net.image_std)
+    assert torch.isfinite(net.normalise(torch.zeros(1, 3, 32, 40), None)).all()  # clamped at 1/255
+    depth, std = net(img)
+    assert (depth - 1).abs().max() < 0.25 and (std > 0).all()
+    with torch.no_grad():
+        net.depth_head.bias.fill_(1e4)
+        assert torch.isfinite(net(img)[0]).all()
+    # log_centered: a per-channel gain of the frame changes nothing where the mask is on
+    cen = FCDenseNet(**TINY, input_transform="log_centered").eval()
+    mask = torch.zeros(1, 1, 32, 40)
+    mask[..., 4:28, 5:35] = 1
+    gain = torch.tensor([0.6, 1.3, 0.9]).view(1, 3, 1, 1)
+    torch.testing.assert_close(cen.normalise(img * gain, mask), cen.normalise(img, mask))
+    x = cen.normalise(img, mask) * cen.image_std + cen.image_mean * mask  # the centred log, inside the mask
+    torch.testing.assert_close((x * mask).sum((2, 3)) / mask.sum(), torch.zeros(1, 3), atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="input_transform"):
+        FCDenseNet(**TINY, input_transform="gamma")
+    with pytest.raises(ValueError, match="depth_activation"):
+        FCDenseNet(**TINY, depth_activation="relu")
