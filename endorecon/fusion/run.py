@@ -31,7 +31,7 @@ FUSION_DEFAULTS = dict(
     name="adaptive", voxel_size=None, voxel_fraction=0.01, depth_max_factor=None, block_resolution=8,
     block_count=20000, mesh_weight_threshold=1.0, device="auto", min_component_fraction=0.0,
     boundary_trim_rings=0, mask_erode_px=0, c1=0.1, c2=0.8, trunc_std_multiplier=3.0, trunc_min_voxels=6.0,
-    trunc_max_voxels=24.0, std_mode="propagate", compile=False, trunc_voxels=6.0,
+    trunc_max_voxels=24.0, std_mode="propagate", compile=False, trunc_voxels=6.0, block_search="sampled",
 )
 
 
@@ -79,6 +79,7 @@ def build_fusion(cfg_fusion, median_depth: float | None = None) -> AdaptiveTSDF 
         min_component_fraction=float(get("min_component_fraction")),
         boundary_trim_rings=int(get("boundary_trim_rings")),
         mask_erode_px=get("mask_erode_px"),
+        block_search=str(get("block_search")),
     )
     if name == "adaptive":
         return AdaptiveTSDF(

@@ -29,11 +29,16 @@ from torch.utils.dlpack import from_dlpack
 
 from endorecon.fusion.kernel import clean_frame, erode_mask, integrate_blocks, integrate_blocks_, local_voxel_offsets
 from endorecon.fusion.ply import write_mesh_ply
-from endorecon.geometry import invert_pose, transform_points, unproject
+from endorecon.geometry import invert_pose, unproject
 from endorecon.utils.errors import InputError
 from endorecon.utils.io import atomic_path
 
 __all__ = ["AdaptiveTSDF", "PlainTSDF", "pixel_band_blocks", "resolve_device"]
+
+# How a frame's truncation band is turned into hash-map blocks: "sampled" is Open3D's
+# compute_unique_block_coordinates (every 4th pixel, so a block the band crosses between samples can miss
+# the frame), "every_pixel" walks the band at every usable pixel (pixel_band_blocks)
+BLOCK_SEARCHES = ("sampled", "every_pixel")
 
 log = logging.getLogger(__name__)
 
@@ -161,12 +166,19 @@ def pixel_band_blocks(depth: torch.Tensor, K: torch.Tensor, cam_from_world: torc
         return torch.zeros((0, 3), dtype=torch.int32)
     K, T = K.to(torch.float64).cpu(), cam_from_world.to(torch.float64).cpu()
     rays = unproject(torch.ones_like(depth)[None, None], K[None])[0][:, v, u].T  # (P, 3) at z = 1
+    world_from_cam = invert_pose(T[None])[0]
+    dirs = rays @ world_from_cam[:3, :3].T  # world ray directions, z-depth 1 each
     n = int(np.ceil(2 * trunc / (0.25 * block_size))) + 1
     offsets = torch.linspace(-trunc, trunc, n, dtype=torch.float64)
     zs = (depth[v, u][:, None] + offsets[None]).clamp_min(0.0)  # (P, n)
-    p_cam = rays[:, None, :] * zs[..., None]  # (P, n, 3)
-    p_world = transform_points(invert_pose(T[None]), p_cam.reshape(1, -1, 3))[0]
-    return torch.unique(torch.floor(p_world / block_size).to(torch.int32), dim=0)
+    p_world = world_from_cam[:3, 3] + zs[..., None] * dirs[:, None, :]  # (P, n, 3)
+    b = torch.floor(p_world.reshape(-1, 3) / block_size).to(torch.int64)
+    # unique over one packed int64 key: ~15x faster than a row-wise unique of (P n, 3)
+    lo = b.min(0).values
+    span = b.max(0).values - lo + 1
+    key = torch.unique(((b[:, 0] - lo[0]) * span[1] + (b[:, 1] - lo[1])) * span[2] + (b[:, 2] - lo[2]))
+    out = torch.stack([key // (span[1] * span[2]), (key // span[2]) % span[1], key % span[2]], 1) + lo
+    return out.to(torch.int32)
 
 
 class _TSDFBase:
@@ -177,8 +189,13 @@ class _TSDFBase:
 
     def __init__(self, voxel_size: float, block_resolution: int = 8, block_count: int = 20000,
                  depth_max: float = float("inf"), mesh_weight_threshold: float = 1.0, device: str = "CPU:0",
-                 min_component_fraction: float = 0.0, boundary_trim_rings: int = 0, mask_erode_px: int = 0):
+                 min_component_fraction: float = 0.0, boundary_trim_rings: int = 0, mask_erode_px: int = 0,
+                 block_search: str = "sampled"):
         self.boundary_trim_rings = _check_trim_rings(boundary_trim_rings)  # before any work, not at saving
+        if block_search not in BLOCK_SEARCHES:
+            raise InputError(f"fusion: block_search must be one of {', '.join(BLOCK_SEARCHES)}, got {block_search!r}",
+                             fix="set fusion.block_search to every_pixel (every band voxel of a frame is updated) or sampled")
+        self.block_search = block_search
         try:
             erode_ok = not isinstance(mask_erode_px, bool) and float(mask_erode_px).is_integer() and mask_erode_px >= 0
         except (TypeError, ValueError):
@@ -265,16 +282,19 @@ class _TSDFBase:
                       img: o3d.t.geometry.Image | None = None) -> o3c.Tensor:
         """Blocks of the truncation band of a cleaned depth map (0 = unusable), (M, 3) int32.
 
-        Open3D's ``compute_unique_block_coordinates`` looks at every 4th pixel only; when that finds no
-        block although the frame has usable pixels (a few pixels left after ``depth_max``), it raises.
-        Then the band is walked at every usable pixel instead (:func:`pixel_band_blocks`)."""
-        img = o3d.t.geometry.Image(_o3c_from_torch(depth)) if img is None else img
-        try:
-            return self.vbg.compute_unique_block_coordinates(
-                img, o3c.Tensor(self._corner_K(K)), o3c.Tensor(T), 1.0, self._o3d_depth_max, float(trunc_voxels))
-        except RuntimeError as e:
-            if "No block is touched" not in str(e):
-                raise
+        ``block_search="every_pixel"`` walks the band at every usable pixel (:func:`pixel_band_blocks`).
+        ``"sampled"`` asks Open3D's ``compute_unique_block_coordinates``, which looks at every 4th pixel
+        only, so blocks the band crosses between the samples skip the frame while their neighbours take it;
+        when it finds no block although the frame has usable pixels (a few pixels left after ``depth_max``),
+        it raises, and the band is walked at every pixel then too."""
+        if self.block_search == "sampled":
+            img = o3d.t.geometry.Image(_o3c_from_torch(depth)) if img is None else img
+            try:
+                return self.vbg.compute_unique_block_coordinates(
+                    img, o3c.Tensor(self._corner_K(K)), o3c.Tensor(T), 1.0, self._o3d_depth_max, float(trunc_voxels))
+            except RuntimeError as e:
+                if "No block is touched" not in str(e):
+                    raise
         bc = pixel_band_blocks(depth, torch.as_tensor(K, dtype=torch.float64), torch.as_tensor(T, dtype=torch.float64),
                                float(trunc_voxels) * self.voxel_size, self.voxel_size * self.block_resolution)
         return _o3c_from_torch(bc.to(self.tdevice).contiguous())
@@ -326,6 +346,7 @@ class AdaptiveTSDF(_TSDFBase):
             (:func:`trim_boundary`; :meth:`extract_mesh` keeps them).
         mask_erode_px: pixels within this radius of the mask's edge or the image border are not fused
             (:func:`endorecon.fusion.kernel.erode_mask`).
+        block_search: ``"sampled"`` or ``"every_pixel"``: how a frame's band finds its blocks (``_touch_blocks``).
     """
 
     attributes = ("tsdf", "weight", "color", "std")
@@ -335,9 +356,10 @@ class AdaptiveTSDF(_TSDFBase):
                  trunc_min_voxels: float = 6.0, trunc_max_voxels: float = 24.0, depth_max: float = float("inf"),
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
                  std_mode: str = "propagate", compile: bool = False, device: str = "CPU:0",
-                 min_component_fraction: float = 0.0, boundary_trim_rings: int = 0, mask_erode_px: int = 0):
+                 min_component_fraction: float = 0.0, boundary_trim_rings: int = 0, mask_erode_px: int = 0,
+                 block_search: str = "sampled"):
         super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
-                         min_component_fraction, boundary_trim_rings, mask_erode_px)
+                         min_component_fraction, boundary_trim_rings, mask_erode_px, block_search)
         if not (0 < c1 <= c2 <= 1):
             raise InputError(f"fusion: need 0 < c1 <= c2 <= 1, got c1={c1}, c2={c2}", fix="fix fusion.c1 / fusion.c2")
         if not (0 < trunc_min_voxels <= trunc_max_voxels):
@@ -474,9 +496,9 @@ class PlainTSDF(_TSDFBase):
     def __init__(self, voxel_size: float, trunc_voxels: float = 6.0, depth_max: float = float("inf"),
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
                  device: str = "CPU:0", min_component_fraction: float = 0.0, boundary_trim_rings: int = 0,
-                 mask_erode_px: int = 0):
+                 mask_erode_px: int = 0, block_search: str = "sampled"):
         super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
-                         min_component_fraction, boundary_trim_rings, mask_erode_px)
+                         min_component_fraction, boundary_trim_rings, mask_erode_px, block_search)
         if not trunc_voxels > 0:
             raise InputError(f"fusion: trunc_voxels must be > 0, got {trunc_voxels}")
         self.trunc_voxels = float(trunc_voxels)

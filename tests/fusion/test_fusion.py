@@ -550,3 +550,50 @@ def test_depth_at_the_mask_edge_is_not_fused(cls):
     p = vol.extract_mesh().vertex.positions.numpy()
     u_p = p[:, 0] / p[:, 2] * K[0, 0] + K[0, 2]
     assert u_p.min() > 2 - 0.5 - 1.0 and u_p.max() < W - 3 + 0.5 + 1.0  # fused pixels are 2..W-3 (+- a voxel)
+
+
+def _band_voxels_missed(vol, d, T, trunc):
+    """(voxels within 0.9 trunc of a usable pixel's depth, along z, and in view; how many have weight 0)."""
+    from endorecon.fusion import pixel_band_blocks
+
+    r = vol.block_resolution
+    blocks = pixel_band_blocks(torch.from_numpy(d), torch.from_numpy(K), torch.from_numpy(T), trunc,
+                               vol.voxel_size * r).numpy().astype(np.int64)
+    loc = np.stack(np.meshgrid(np.arange(r), np.arange(r), np.arange(r), indexing="ij"), -1).reshape(-1, 3)
+    g = (blocks[:, None, :] * r + loc[None]).reshape(-1, 3)
+    pc = (g * vol.voxel_size) @ T[:3, :3].T + T[:3, 3]
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.rint(K[0, 0] * pc[:, 0] / z + K[0, 2])
+        v = np.rint(K[1, 1] * pc[:, 1] / z + K[1, 2])
+    ok = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    dd = np.zeros_like(z)
+    dd[ok] = d[v[ok].astype(int), u[ok].astype(int)]
+    g = g[ok & (dd > 0) & (np.abs(dd - z) < 0.9 * trunc)]
+    blk = np.floor_divide(g, r)
+    loc = g - blk * r
+    buf, found = vol.vbg.hashmap().find(o3d.core.Tensor(blk.astype(np.int32)))
+    buf, found = buf.numpy().astype(np.int64), found.numpy().astype(bool)
+    w = np.zeros(len(g))
+    wv = _torch_view(vol.vbg.attribute("weight"))
+    w[found] = wv[buf[found], loc[found, 2], loc[found, 1], loc[found, 0]].reshape(-1).numpy()
+    return len(g), int((w == 0).sum())
+
+
+def test_every_pixel_block_search_updates_every_band_voxel():
+    # Open3D's block search (every 4th pixel) leaves blocks the band crosses between its samples out of the
+    # frame: a few % of the band's voxels on a tilted plane (the block patches of the adaptive mesh)
+    voxel = 0.02
+    T = look_at((0.1, -0.05, -0.3), (0.0, 0.0, 1.0))
+    d = plane_depth(T, (0.2, 0.1, -1.0), -1.0).astype(np.float32)
+    missed = {}
+    for search in ("sampled", "every_pixel"):
+        vol = AdaptiveTSDF(voxel, block_search=search, compile=False, trunc_min_voxels=6.0)
+        vol.integrate(d, np.full((H, W), 0.005, np.float32), None, K, T)  # 3 sigma < 6 voxels: trunc = 0.12
+        missed[search] = _band_voxels_missed(vol, d, T, 6 * voxel)
+    n, miss = missed["every_pixel"]
+    assert n > 10000 and miss == 0
+    assert missed["sampled"][0] == n and missed["sampled"][1] > 0.01 * n
+    for cls in (AdaptiveTSDF, PlainTSDF):
+        with pytest.raises(InputError, match="block_search"):
+            cls(voxel, block_search="open3d")
