@@ -23,6 +23,7 @@ On disk a sequence is a folder::
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 from pathlib import Path
 
@@ -362,3 +363,32 @@ def read_poses_txt(path: str | Path) -> tuple[list[str], np.ndarray]:
             raise InputError(f"line {ln}: {e}", path) from e
         names.append(parts[0])
     return names, np.stack(mats) if mats else np.zeros((0, 4, 4))
+
+
+# ------------------------------------------------------- which SfM model a run used
+def sfm_fingerprint(seq: Sequence) -> str | None:
+    """A short digest of the sequence's sparse SfM points (None without any).
+
+    Refined poses are only meaningful against the SfM model they were refined from: another run of SfM
+    (other settings, another data path, a deleted cache) puts the same video in another world frame and
+    scale.  Each iteration records this digest beside its poses so that the next one can check it."""
+    if seq.points_xyz is None or not len(seq.points_xyz):
+        return None
+    pts = np.ascontiguousarray(np.asarray(seq.points_xyz, dtype=np.float64))
+    return hashlib.sha1(pts.tobytes()).hexdigest()[:16]
+
+
+def same_fixed_frame(sfm_cam_from_world: np.ndarray, refined_cam_from_world: np.ndarray,
+                     rtol: float = 1e-6) -> bool | None:
+    """Whether refined poses keep the first registered frame of the SfM poses where it is, as dense PGO does
+    (it fixes that frame bit-exact; poses.txt stores 10 significant digits).  For runs that predate
+    :func:`sfm_fingerprint`.  None when the SfM poses have no registered frame or the counts differ."""
+    sfm = np.asarray(sfm_cam_from_world, dtype=np.float64)
+    ref = np.asarray(refined_cam_from_world, dtype=np.float64)
+    reg = np.flatnonzero(np.isfinite(sfm).all(axis=(1, 2)))
+    if len(sfm) != len(ref) or not len(reg):
+        return None
+    a, b = sfm[reg[0]], ref[reg[0]]
+    if not np.isfinite(b).all():
+        return False
+    return bool(np.abs(a - b).max() <= rtol * (1.0 + np.abs(a).max()))

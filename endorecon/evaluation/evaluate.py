@@ -32,7 +32,9 @@ HISTOGRAM_FILE = "residual_histogram.png"
 RESIDUALS_FILE = "residuals.npz"
 GLOBAL_POINTS = 20000  # samples per mesh for the FPFH + RANSAC initialisation
 # Recorded with every evaluation: metrics of an earlier version (without the std ranking) are not reused.
-METRICS_VERSION = 2
+METRICS_VERSION = 3  # 3: area_mm2 and ct_covered_mm2
+# a CT point counts as reconstructed when the registered mesh passes within this distance (mm)
+COVERAGE_MM = 1.0
 
 
 def vertex_std(mesh_path: Path, vertices: np.ndarray) -> np.ndarray | None:
@@ -73,6 +75,20 @@ def _fingerprint(mesh_path: Path, reference_path: Path, arrays: tuple, params: d
     for a in arrays:
         h.update(b"none" if a is None else np.ascontiguousarray(a, dtype=np.float64).tobytes())
     return {"mesh": file_id(mesh_path), "reference": file_id(reference_path), "trajectory_sha1": h.hexdigest(), **params}
+
+
+def coverage(recon_registered: o3d.geometry.TriangleMesh, reference: o3d.geometry.TriangleMesh,
+             n_points: int = 40000, seed: int = 0, within_mm: float = COVERAGE_MM) -> dict:
+    """Surface area of the registered reconstruction and of the reference it covers, in mm².
+
+    ``ct_covered_mm2``: the reference's area whose points lie within ``within_mm`` of the reconstruction
+    (``n_points`` area-uniform samples); ``ct_area_mm2``: the whole reference (a video sees part of it).
+    """
+    samples = sample_points(reference, n_points, seed + 3)
+    near = ReferenceSurface(recon_registered).distance(samples) <= within_mm
+    ct_area = float(reference.get_surface_area())
+    return {"area_mm2": float(recon_registered.get_surface_area()), "ct_area_mm2": ct_area,
+            "ct_covered_mm2": ct_area * float(near.mean()), "coverage_within_mm": float(within_mm)}
 
 
 def evaluate_mesh(
@@ -159,6 +175,9 @@ def evaluate_mesh(
     recon_reg = o3d.geometry.TriangleMesh(recon)
     recon_reg.vertices = o3d.utility.Vector3dVector(T.apply(np.asarray(recon.vertices, dtype=np.float64)))
     vertex_residual = surface.distance(np.asarray(recon_reg.vertices))
+    # How much anatomy the residuals are about: trimming a mesh lowers its residuals by covering less, so
+    # the mesh's area and the CT area it reconstructs are reported beside them.
+    metrics.update(coverage(recon_reg, reference, n_points, seed))
     # Does the mesh's own uncertainty point at its errors? Rank correlation over the vertices (NaN: constant std).
     std = vertex_std(mesh_path, np.asarray(recon.vertices, dtype=np.float64))
     metrics["std_residual_spearman"] = None

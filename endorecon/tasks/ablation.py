@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from endorecon.data.sequence import read_poses_txt
+from endorecon.data.sequence import read_poses_txt, sfm_fingerprint
 from endorecon.tasks import pipeline
 from endorecon.tasks.pipeline import REFINE_SETTINGS, refine_settings
 from endorecon.utils.errors import InputError
@@ -47,7 +47,8 @@ log = logging.getLogger(__name__)
 
 VARIANTS = ("full", "plain_fusion", "no_failure_pgo", "iteration0", "gt_upper_bound", "adapted")
 # std_residual_spearman: how well the mesh's per-vertex std ranks its residuals (None: the mesh has no std)
-COLUMNS = ("mean_mm", "median_mm", "p95_mm", "max_mm", "frac_below_1mm", "abs_rel", "std_residual_spearman")
+COLUMNS = ("mean_mm", "median_mm", "p95_mm", "max_mm", "frac_below_1mm", "ct_covered_mm2", "abs_rel",
+           "std_residual_spearman")
 
 
 def _last_iteration(fold_dir: Path) -> int:
@@ -92,6 +93,21 @@ def settings_diff(old: dict | None, new: dict, ignore: tuple[str, ...] = ("fusio
     return out
 
 
+def _same_source(old, new: dict) -> bool:
+    """Whether a recorded ``source.json`` names what ``new`` does: the same checkpoint and SfM model, and
+    settings that differ only where nothing differs (a key added to a config since, at the value the old
+    run used without it; the boundary trim, which :func:`configured_mesh` applies to any saved mesh)."""
+    if not isinstance(old, dict) or set(old) != set(new):
+        return False
+    if any(old[k] != new[k] for k in old if k != "settings"):
+        return False
+    a, b = old.get("settings"), new.get("settings")
+    if not (isinstance(a, dict) and isinstance(b, dict)) or set(a) != set(b):
+        return a == b
+    norm_a, norm_b = refine_settings(OmegaConf.create(a)), refine_settings(OmegaConf.create(b))
+    return norm_a is not None and norm_b is not None and not settings_diff(norm_a, norm_b)
+
+
 def _reset_if_other_source(vdir: Path, source: dict, keep: tuple[str, ...] = ()) -> None:
     """Empty ``vdir`` when its outputs came from another source than ``source`` (``{"checkpoint": file id,
     "settings": refine_settings(cfg)}``; a retrained fold, changed fusion settings, or a dir made before
@@ -104,14 +120,17 @@ def _reset_if_other_source(vdir: Path, source: dict, keep: tuple[str, ...] = ())
         old = json.loads(marker.read_text())
     except (OSError, ValueError):
         old = None
-    if old == source:
+    if old == source or _same_source(old, source):
         return
     if vdir.exists():
         if isinstance(old, dict) and "checkpoint" not in old and "settings" not in old:
             old = {"checkpoint": old}  # a record of the checkpoint alone (before settings were recorded)
-        same_ckpt = isinstance(old, dict) and old.get("checkpoint") == source.get("checkpoint")
+        # the SfM model too: another SfM run of the video is another world frame (``sfm``: the digest of its
+        # points; a record without it is unrecorded, so made again)
+        same_ckpt = (isinstance(old, dict) and old.get("checkpoint") == source.get("checkpoint")
+                     and old.get("sfm") == source.get("sfm"))
         log.info("%s was made from another (or an unrecorded) %s: running it again", vdir,
-                 "setting" if same_ckpt else "checkpoint")
+                 "setting" if same_ckpt else "checkpoint or SfM model")
         _empty_dir(vdir, keep if same_ckpt else ())
     vdir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(marker, json.dumps(source, indent=2) + "\n")
@@ -184,6 +203,7 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
         if gt.mesh_path is None:
             continue
 
+        seq_source = {**source, "sfm": sfm_fingerprint(sfm_seq)}
         abs_rel = {}
         for variant, it in (("full", last), ("iteration0", 0)):
             it_dir = fold_dir / f"iteration={it}"
@@ -204,7 +224,7 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
         for variant, changes in (("plain_fusion", {"fusion.name": "plain"}),
                                  ("no_failure_pgo", {"failure.enabled": False, "pgo.enabled": False})):
             vdir = out_dir / variant / slug
-            _reset_if_other_source(vdir, source)
+            _reset_if_other_source(vdir, seq_source)
             if not (vdir / "summary.json").is_file() and depth is None:
                 depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)
             pipeline.refine_sequence(_variant_cfg(cfg, **changes), prep.seq, prep.cache, depth, std, colors,
@@ -214,7 +234,7 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
                                                                   configured_mesh(cfg, vdir / "mesh.ply", vdir), poses,
                                                                   vdir / "evaluation"), abs_rel["full"]))
         if (cfg.get("adapt") or {}).get("enabled", True):
-            _reset_if_other_source(out_dir / "adapted" / slug, source, keep=("adaptation",))
+            _reset_if_other_source(out_dir / "adapted" / slug, seq_source, keep=("adaptation",))
             rows.append(run_adapted(cfg, module, info.root, sfm_seq, out_dir / "adapted" / slug))
         gdir = out_dir / "gt_upper_bound" / slug
         _reset_if_other_source(gdir, {"checkpoint": None, "settings": {"fusion": settings["fusion"]}})
@@ -240,7 +260,8 @@ def refuse_iteration(cfg: DictConfig, info, fold_dir: Path, it: int, sfm_seq, ou
     slug = pipeline._slug(sfm_seq.name)
     vdir = Path(out_root) / f"iteration={it}" / "sequences" / slug
     ckpt = it_dir / "checkpoints" / "last.ckpt"
-    _reset_if_other_source(vdir, {"checkpoint": file_id(ckpt), "settings": refine_settings(cfg)})
+    _reset_if_other_source(vdir, {"checkpoint": file_id(ckpt), "settings": refine_settings(cfg),
+                                  "sfm": sfm_fingerprint(sfm_seq)})
     if not (vdir / "summary.json").is_file():
         log.info("%s: %s ran with other settings (%s); its last stage again into %s", sfm_seq.name, it_dir,
                  "; ".join(why), vdir)
@@ -307,17 +328,19 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
 
     lines = [",".join(fields)] + [",".join(cell(r, f) for f in fields) for r in rows]
     csv_path = atomic_write_text(out_dir / "results.csv", "\n".join(lines) + "\n")
-    md = ["| patient | variant | mean (mm) | median (mm) | p95 (mm) | max (mm) | < 1 mm | depth AbsRel | mesh std ρ |",
-          "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    md = ["| patient | variant | mean (mm) | median (mm) | p95 (mm) | max (mm) | < 1 mm | CT covered (cm²) | depth AbsRel "
+          "| mesh std ρ |",
+          "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
 
     def fmt(r):
         ar = "" if r.get("abs_rel") is None else f"{r['abs_rel']:.3f}"
         rho = "" if r.get("std_residual_spearman") is None else f"{r['std_residual_spearman']:+.2f}"
+        cov = "" if r.get("ct_covered_mm2") is None else f"{r['ct_covered_mm2'] / 100:.1f}"
         if r["mean_mm"] is None:
-            return "| {} | {} | n/a | n/a | n/a | n/a | n/a | {} | |".format(r["patient"], r["variant"], ar)
-        return "| {} | {} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0%} | {} | {} |".format(
+            return "| {} | {} | n/a | n/a | n/a | n/a | n/a | n/a | {} | |".format(r["patient"], r["variant"], ar)
+        return "| {} | {} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0%} | {} | {} | {} |".format(
             r["patient"], r["variant"] + ("*" if r.get("refused") else ""), r["mean_mm"], r["median_mm"], r["p95_mm"],
-            r["max_mm"], r["frac_below_1mm"], ar, rho)
+            r["max_mm"], r["frac_below_1mm"], cov, ar, rho)
 
     md += [fmt(r) for r in rows]
     refused = sorted({d for r in rows for d in (r.get("refused") or [])})

@@ -89,6 +89,10 @@ def print_metrics(metrics: dict, out: Path) -> None:
         table.add_row(label, f"{metrics[key]:.3f} mm")
     table.add_row("fraction < 1 mm", f"{100 * metrics['frac_below_1mm']:.1f} %")
     table.add_row("points", str(metrics["n_points"]))
+    if metrics.get("ct_covered_mm2") is not None:  # residuals only speak for the surface that was reconstructed
+        table.add_row(f"reference covered (within {metrics['coverage_within_mm']:g} mm)",
+                      f"{metrics['ct_covered_mm2'] / 100:.1f} of {metrics['ct_area_mm2'] / 100:.1f} cm² "
+                      f"(mesh {metrics['area_mm2'] / 100:.1f} cm²)")
     rho = metrics.get("std_residual_spearman")
     if rho is not None:  # near 0 or negative: the mesh's std colours do not show where it is wrong
         table.add_row("std vs residual (Spearman, vertices)", f"{rho:+.3f}")

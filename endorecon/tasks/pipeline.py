@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from endorecon.data.sequence import Sequence, read_poses_txt, write_poses_txt
+from endorecon.data.sequence import Sequence, read_poses_txt, sfm_fingerprint, write_poses_txt
 from endorecon.utils.errors import InputError
 from endorecon.utils.io import atomic_save_npz, atomic_write_text
 
@@ -72,18 +72,34 @@ def config_hash(*parts) -> str:
     return h.hexdigest()[:10]
 
 
+def sfm_cache_dir(cfg: DictConfig, data_root: Path | None) -> Path:
+    """``paths.cache_dir/sfm/<hash of the sfm settings, the dataset stamp and the resolved data path>``.
+
+    The resolved path: the same data reached through a symlink or from another working directory must find
+    the same SfM, not make another one (another world frame and scale, which poses refined in earlier
+    iterations would not fit; :func:`endorecon.tasks.train.check_same_sfm` refuses them).  A cache made
+    before the path was resolved (its key: the path as given) is reused where it exists."""
+    stamp = ""
+    if data_root is not None and (Path(data_root) / "dataset.json").is_file():
+        stamp = (Path(data_root) / "dataset.json").read_text()
+    root = Path(cfg.paths.cache_dir) / "sfm"
+    key = config_hash(cfg.sfm, stamp, str(Path(data_root).resolve()) if data_root is not None else "None")
+    legacy = config_hash(cfg.sfm, stamp, str(data_root))
+    if not (root / key).is_dir() and (root / legacy).is_dir():
+        log.info("SfM cache %s (made before its key used the resolved data path) reused", root / legacy)
+        return root / legacy
+    return root / key
+
+
 def run_sfm(cfg: DictConfig, sequences: list[Sequence], data_root: Path | None = None) -> list[Sequence]:
     """SfM for every sequence, cached in ``paths.cache_dir/sfm/<hash>/<sequence>`` (resumable)."""
     from endorecon.sfm.stage import load_result
     from endorecon.sfm.stage import run as sfm_run
 
-    stamp = ""
-    if data_root is not None and (Path(data_root) / "dataset.json").is_file():
-        stamp = (Path(data_root) / "dataset.json").read_text()
-    key = config_hash(cfg.sfm, stamp, str(data_root))
+    root = sfm_cache_dir(cfg, data_root)
     out = []
     for seq in sequences:
-        out_dir = Path(cfg.paths.cache_dir) / "sfm" / key / _slug(seq.name)
+        out_dir = root / _slug(seq.name)
         sfm_run(cfg.sfm, seq, out_dir)
         res = load_result(out_dir)
         res.patient = seq.patient
@@ -342,6 +358,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         pgo=pgo_summary,
         resfm=resfm_info,
         times=times,
+        sfm_fingerprint=sfm_fingerprint(seq),  # the next iteration checks its SfM against these poses
     )
     atomic_write_text(done, json.dumps(summary, indent=2) + "\n")
     return summary

@@ -247,9 +247,12 @@ def network_sequence(sfm_seq: Sequence, module, train_hw: tuple[int, int] | None
 
 # ------------------------------------------------------------------ stages
 def _stamp(ckpt: Path, seq: Sequence) -> str:
-    """What the depth maps depend on: the checkpoint file and the frames' size, window and count."""
-    return json.dumps(dict(ckpt=file_id(ckpt), hw=[seq.height, seq.width],
-                           window=list(seq.native_window or []), frames=len(seq)), sort_keys=True)
+    """What the depth maps depend on: the checkpoint file, the frames' size, window and count, and the SfM
+    model (the Depth Scaling Layer scales depth to its sparse points; SfM made again is another scale)."""
+    from endorecon.data.sequence import sfm_fingerprint
+
+    return json.dumps(dict(ckpt=file_id(ckpt), hw=[seq.height, seq.width], window=list(seq.native_window or []),
+                           frames=len(seq), sfm=sfm_fingerprint(seq)), sort_keys=True)
 
 
 def infer_stage(module, seq: Sequence, cache, stamp: str, out: Path):

@@ -41,6 +41,35 @@ def is_complete(it_dir: Path) -> bool:
     return (it_dir / "metrics.json").is_file()
 
 
+def check_same_sfm(seq: Sequence, summary: dict, refined_cam_from_world: np.ndarray, sdir: Path,
+                   sfm_cache: Path) -> None:
+    """Refuse poses that an earlier iteration refined from another SfM model of ``seq``.
+
+    The next iteration projects *this* SfM's points with those poses (sparse depth and flow) and fuses with
+    them; poses of another model (SfM made again after its settings, the data path or the cache changed)
+    sit in another world frame and scale, and everything trained or fused from them would be silently
+    wrong.  Checked by the points' digest each summary records; summaries from before it was recorded are
+    checked by the frame dense PGO holds fixed (unless an SfM rerun replaced that frame)."""
+    from endorecon.data.sequence import same_fixed_frame, sfm_fingerprint
+
+    recorded, now = summary.get("sfm_fingerprint"), sfm_fingerprint(seq)
+    if recorded is not None and now is not None:
+        same = recorded == now
+    else:
+        reg = np.flatnonzero(np.isfinite(seq.cam_from_world).all(axis=(1, 2)))
+        replaced = set((summary.get("resfm") or {}).get("replaced_frames") or [])
+        same = None if (len(reg) and int(reg[0]) in replaced) else same_fixed_frame(seq.cam_from_world,
+                                                                                     refined_cam_from_world)
+    if same is False:
+        raise InputError(
+            f"these poses of {seq.name} were refined from another SfM model than the one in the SfM cache now "
+            f"({sfm_cache}; sparse points digest {now}, recorded {recorded or 'not recorded, fixed frame moved'}): "
+            "SfM ran again because its settings, the data path or the cache changed since that iteration",
+            sdir / "poses.txt",
+            f"rerun with the sfm.* settings and paths the fold was trained with, or delete {sdir.parents[1]} and "
+            "the iterations after it so that they are made again from this SfM")
+
+
 def prepare_sequences(cfg: DictConfig, sfm_seqs: list[Sequence], prev_dir: Path | None):
     """Sequences at training resolution with poses, sparse caches, simulated depth and exclusions of ``prev_dir``."""
     from endorecon.data.datamodule import PreparedSequence
@@ -56,9 +85,10 @@ def prepare_sequences(cfg: DictConfig, sfm_seqs: list[Sequence], prev_dir: Path 
             if names != [p.name for p in small.frame_paths]:
                 raise InputError("refined poses list other frames than the sequence", sdir / "poses.txt",
                                  "delete the iteration dirs of this fold and rerun")
+            summary = json.loads((sdir / "summary.json").read_text())
+            check_same_sfm(seq, summary, poses, sdir, Path(cfg.paths.cache_dir) / "sfm")
             small = small.replace(cam_from_world=poses)
             sim, sim_valid = pipeline.load_simulated(sdir / "simulated_depth.npz")
-            summary = json.loads((sdir / "summary.json").read_text())
             excluded = np.zeros(len(small), bool)
             excluded[summary["flagged"]] = True
         cache = build_sparse_cache(small)

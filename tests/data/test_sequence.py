@@ -143,3 +143,25 @@ def test_unregistered_rows_and_shape_checks(tmp_path):
     assert seq.replace(cam_from_world=T).registered.tolist() == [True, True, False]
     X = transform_points(torch.eye(4, dtype=torch.float64)[None], torch.zeros(1, 1, 3, dtype=torch.float64))
     assert X.shape == (1, 1, 3)
+
+
+def test_sfm_fingerprint_and_fixed_frame_tell_sfm_models_apart():
+    from endorecon.data.sequence import same_fixed_frame, sfm_fingerprint
+
+    K = np.array([[50.0, 0, 39.5], [0, 50.0, 31.5], [0, 0, 1]])
+    pts = np.arange(30, dtype=np.float64).reshape(10, 3)
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    seq = Sequence("p/s", [f"{i}.png" for i in range(3)], K, 64, 80, np.ones((64, 80), bool), poses, pts,
+                   [np.arange(3)] * 10)
+    assert sfm_fingerprint(seq) == sfm_fingerprint(seq.replace(cam_from_world=poses * 2))  # poses do not count
+    assert sfm_fingerprint(seq) != sfm_fingerprint(seq.replace(points_xyz=pts + 1e-9))
+    assert sfm_fingerprint(seq.replace(points_xyz=None, visibility=None)) is None
+    refined = poses.copy()
+    refined[1:, 0, 3] += 0.01  # PGO moves the others, never the first registered frame
+    assert same_fixed_frame(poses, refined) is True
+    refined[0, 0, 3] += 1e-3
+    assert same_fixed_frame(poses, refined) is False
+    unreg = poses.copy()
+    unreg[0] = np.nan  # the first registered frame is then frame 1
+    assert same_fixed_frame(unreg, np.concatenate([refined[:1], poses[1:]])) is True
+    assert same_fixed_frame(poses, poses[:2]) is None

@@ -36,8 +36,9 @@ def test_mesh_against_itself(ct_path, tmp_path):
     for f in ("metrics.json", "residual_heatmap.png", "residual_histogram.png", "residuals.npz"):
         assert (tmp_path / "out" / f).is_file(), f
     on_disk = json.loads((tmp_path / "out" / "metrics.json").read_text())
-    for k in ("mean_mm", "median_mm", "p95_mm", "max_mm", "frac_below_1mm", "n_points"):
+    for k in ("mean_mm", "median_mm", "p95_mm", "max_mm", "frac_below_1mm", "n_points", "ct_covered_mm2"):
         assert on_disk[k] == m[k]
+    assert m["ct_covered_mm2"] == pytest.approx(m["ct_area_mm2"], rel=1e-3)  # a mesh covers all of itself
     assert set(on_disk["sim3"]) >= {"scale", "R", "t"} and "fitness" in on_disk["registration"]
 
 
@@ -56,6 +57,22 @@ def test_known_normal_offset(tmp_path):
     m = evaluate_mesh(_write(patch, tmp_path / "patch2.ply"), ref, tmp_path / "out2", n_points=2000,
                       registration={"init": "identity", "max_iter": 0})
     assert m["median_mm"] == pytest.approx(1.5, abs=2e-3) and m["frac_below_1mm"] == 0.0
+
+
+def test_coverage_of_a_patch_over_a_cube():
+    """The CT area a reconstruction covers, analytically: a 10x10 mm patch 0.5 mm above a 20 mm cube's top
+    face reaches (within 1 mm) the face under it grown by sqrt(1 - 0.5²) mm: 100 + 40 r + π r² mm²."""
+    from endorecon.evaluation.evaluate import coverage
+
+    cube = o3d.geometry.TriangleMesh.create_box(20.0, 20.0, 20.0)
+    patch = o3d.geometry.TriangleMesh.create_box(10.0, 10.0, 1e-3)
+    patch.translate([5.0, 5.0, 20.5])
+    c = coverage(patch, cube, n_points=200000, seed=1)
+    r = np.sqrt(1 - 0.25)
+    assert c["ct_area_mm2"] == pytest.approx(2400.0) and c["area_mm2"] == pytest.approx(200.0, rel=1e-3)
+    assert c["ct_covered_mm2"] == pytest.approx(100 + 40 * r + np.pi * r**2, abs=5.0)
+    patch.translate([0.0, 0.0, 1.0])  # 1.5 mm above: covers nothing
+    assert coverage(patch, cube, n_points=20000)["ct_covered_mm2"] == 0.0
 
 
 def _tilted_patch_with_std(path, sign):

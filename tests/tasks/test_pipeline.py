@@ -113,3 +113,60 @@ def test_settings_diff_names_what_changed():
     assert settings_diff(settings_of(a), settings_of(same)) == []  # an explicit default is no change
     assert settings_diff(settings_of(a), settings_of(a)) == []
     assert settings_diff(None, settings_of(a)) == ["settings unrecorded"]
+
+def test_sfm_cache_is_found_through_a_symlinked_data_root(tmp_path):
+    """The same data through a symlink (another output root, another working directory) must reuse its SfM:
+    a second SfM run would put the video in another world frame.  A cache keyed the old way (the path as
+    given) is reused where it exists."""
+    from endorecon.tasks.pipeline import config_hash, sfm_cache_dir
+
+    data = tmp_path / "real" / "phantom"
+    data.mkdir(parents=True)
+    (data / "dataset.json").write_text('{"patients": 1}')
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    cfg = OmegaConf.create({"sfm": {"num_threads": -1}, "paths": {"cache_dir": str(tmp_path / "cache")}})
+    real, linked = sfm_cache_dir(cfg, data), sfm_cache_dir(cfg, tmp_path / "link" / "phantom")
+    assert real == linked and real.parent == tmp_path / "cache" / "sfm"
+    other = OmegaConf.create({**OmegaConf.to_container(cfg), "sfm": {"num_threads": 1}})
+    assert sfm_cache_dir(other, data) != real  # other SfM settings: another model
+    legacy = tmp_path / "cache" / "sfm" / config_hash(cfg.sfm, '{"patients": 1}', str(tmp_path / "link" / "phantom"))
+    legacy.mkdir(parents=True)
+    assert sfm_cache_dir(cfg, tmp_path / "link" / "phantom") == legacy
+    assert sfm_cache_dir(cfg, data) == real  # its own key for the path it was made under
+
+
+def test_ablation_variants_follow_the_sfm_model_and_ignore_settings_added_since(tmp_path):
+    """A variant made from another SfM model is made again; one whose record lacks a setting added to the
+    config since (at the value the old run used) or differs in the boundary trim alone is kept."""
+    import json
+
+    from endorecon.fusion.run import FUSION_DEFAULTS
+    from endorecon.tasks.ablation import _reset_if_other_source
+
+    settings = {"fusion": {**FUSION_DEFAULTS, "boundary_trim_rings": 1}, "failure": {}, "pgo": {}}
+    src = {"checkpoint": {"path": "a"}, "settings": settings, "sfm": "0123"}
+    vdir = tmp_path / "plain_fusion" / "x"
+    recorded = {k: v for k, v in settings["fusion"].items() if k != "block_search"}  # before block_search existed
+    vdir.mkdir(parents=True)
+    (vdir / "source.json").write_text(json.dumps({**src, "settings": {**settings, "fusion": recorded}}))
+    (vdir / "summary.json").write_text("{}")
+    _reset_if_other_source(vdir, src)
+    assert (vdir / "summary.json").is_file()
+    _reset_if_other_source(vdir, {**src, "settings": {**settings, "fusion": {**settings["fusion"], "boundary_trim_rings": 2}}})
+    assert (vdir / "summary.json").is_file()
+    _reset_if_other_source(vdir, {**src, "settings": {**settings, "fusion": {**settings["fusion"], "c1": 0.2}}})
+    assert not (vdir / "summary.json").exists()  # a setting that changes the mesh
+    (vdir / "summary.json").write_text("{}")
+    _reset_if_other_source(vdir, {**src, "sfm": "4567"})
+    assert not (vdir / "summary.json").exists()  # SfM ran again
+    adapted = tmp_path / "adapted" / "x"
+    _reset_if_other_source(adapted, src, keep=("adaptation",))
+    (adapted / "adaptation").mkdir()
+    _reset_if_other_source(adapted, {**src, "sfm": "4567"}, keep=("adaptation",))
+    assert not (adapted / "adaptation").exists()  # adapted on the other model's sparse depth: not kept
+    legacy = tmp_path / "no_failure_pgo" / "x"  # recorded before the SfM model was: unknown, made again
+    legacy.mkdir(parents=True)
+    (legacy / "source.json").write_text(json.dumps({k: v for k, v in src.items() if k != "sfm"}))
+    (legacy / "summary.json").write_text("{}")
+    _reset_if_other_source(legacy, src)
+    assert not (legacy / "summary.json").exists()

@@ -300,3 +300,21 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     assert third["adaptation"]["skipped"] and third["inference"]["skipped"]
     assert not third["failure detection + PGO + fusion"]["skipped"]
     assert (run_dir / "mesh.ply").read_bytes() != mesh_bytes
+
+
+def test_depth_stamp_follows_the_sfm_model(tmp_path):
+    """Depth maps are scaled to the SfM's sparse points: an SfM made again (its run dir deleted) must not
+    reuse the cached depth, adaptation or mesh made for the old one."""
+    import numpy as np
+
+    from endorecon.data.sequence import Sequence
+    from endorecon.tasks.reconstruct import _stamp
+
+    ckpt = tmp_path / "last.ckpt"
+    ckpt.write_bytes(b"w")
+    K = np.array([[50.0, 0, 39.5], [0, 50.0, 31.5], [0, 0, 1]])
+    pts = np.arange(30, dtype=np.float64).reshape(10, 3)
+    seq = Sequence("p/s", [f"{i}.png" for i in range(3)], K, 64, 80, np.ones((64, 80), bool),
+                   np.tile(np.eye(4), (3, 1, 1)), pts, [np.arange(3)] * 10)
+    assert _stamp(ckpt, seq) == _stamp(ckpt, seq.replace())
+    assert _stamp(ckpt, seq) != _stamp(ckpt, seq.replace(points_xyz=pts * 1.01))

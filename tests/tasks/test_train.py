@@ -58,6 +58,8 @@ def test_two_iterations_end_to_end(debug_run):
     assert m0["train"]["train/dense_simulation_active"] == 0.0
     assert m1["train"]["train/dense_simulation_active"] == 1.0
     assert m1["train"]["train/dense_simulation_weighted"] != 0.0
+    summaries = list((fold_dir / "iteration=0" / "sequences").glob("*/summary.json"))
+    assert summaries and all(json.loads(p.read_text())["sfm_fingerprint"] for p in summaries)  # checked by iteration 1
     for m in (m0, m1):
         assert all(np.isfinite(v) for v in m["train"].values() if v is not None), "non-finite training metric"
         assert m["train"]["train/skipped_batches"] == 0.0
@@ -217,3 +219,64 @@ def test_every_config_group_composes():
         assert cfg.fusion.name in ("adaptive", "plain")
     cfg = _compose("train", ["experiment=paper"])
     assert cfg.bootstrap.epochs_per_iteration == 20 and cfg.data.height == 256 and cfg.iteration == 2
+
+
+def _two_view_sequence(tmp_path, rot_deg: float = 0.0, seed: int = 0):
+    """Four frames looking down +z at 50 points; ``rot_deg`` turns the whole SfM world about y (another
+    SfM run of the same video: same images, another world frame)."""
+    from endorecon.data.sequence import Sequence
+
+    rng = np.random.default_rng(seed)
+    pts = np.c_[rng.uniform(-1, 1, (50, 2)), rng.uniform(4, 6, 50)]
+    poses = np.tile(np.eye(4), (4, 1, 1))
+    poses[:, 0, 3] = -0.1 * np.arange(4)
+    a = np.radians(rot_deg)
+    world_from_new = np.array([[np.cos(a), 0, np.sin(a), 0], [0, 1, 0, 0], [-np.sin(a), 0, np.cos(a), 0], [0, 0, 0, 1]])
+    poses = poses @ world_from_new  # cam_from_new = cam_from_world @ world_from_new
+    pts = (np.linalg.inv(world_from_new)[:3, :3] @ pts.T).T
+    K = np.array([[40.0, 0, 39.5], [0, 40.0, 31.5], [0, 0, 1]])
+    return Sequence(name="patient_00/seq_00", frame_paths=[tmp_path / f"{i:06d}.jpg" for i in range(4)],
+                    intrinsics=K, height=64, width=80, mask=np.ones((64, 80), bool), cam_from_world=poses,
+                    points_xyz=pts, visibility=[np.arange(4)] * 50, units="sfm", source="colmap", patient=0)
+
+
+def _previous_iteration(tmp_path, seq, record_fingerprint: bool = True) -> Path:
+    """An iteration dir as refine_sequence leaves it for ``seq`` (poses nudged as dense PGO would, with the
+    first frame fixed)."""
+    from endorecon.data.sequence import sfm_fingerprint, write_poses_txt
+    from endorecon.tasks import pipeline
+
+    prev = tmp_path / "fold=0" / "iteration=0"
+    sdir = prev / "sequences" / "patient_00__seq_00"
+    sdir.mkdir(parents=True)
+    refined = seq.cam_from_world.copy()
+    refined[1:, :3, 3] += 1e-3
+    write_poses_txt(sdir / "poses.txt", [p.name for p in seq.frame_paths], refined)
+    pipeline.save_simulated(sdir / "simulated_depth.npz", np.zeros((4, 64, 80), np.float32), np.zeros((4, 64, 80), bool))
+    summary = {"flagged": [], "resfm": {"replaced_frames": []}}
+    if record_fingerprint:
+        summary["sfm_fingerprint"] = sfm_fingerprint(seq)
+    (sdir / "summary.json").write_text(json.dumps(summary))
+    return prev
+
+
+@pytest.mark.parametrize("recorded", [True, False])
+def test_poses_of_another_sfm_model_are_refused(tmp_path, recorded):
+    """The next iteration projects the *current* SfM's points with the previous iteration's poses: poses
+    refined from another SfM run of the video (another world frame) must stop it, naming the file, not
+    train and fuse on garbage.  Runs from before the points' digest was recorded are checked by the frame
+    that dense PGO holds fixed."""
+    from omegaconf import OmegaConf
+
+    from endorecon.tasks.train import prepare_sequences
+
+    cfg = OmegaConf.create({"data": {"height": 64, "width": 80}, "paths": {"cache_dir": str(tmp_path / "cache")}})
+    seq = _two_view_sequence(tmp_path)
+    prev = _previous_iteration(tmp_path, seq, record_fingerprint=recorded)
+    prep = prepare_sequences(cfg, [seq], prev)[0]  # the model it was refined from: accepted
+    assert np.allclose(prep.seq.cam_from_world[1:, :3, 3], seq.cam_from_world[1:, :3, 3] + 1e-3)
+    assert prep.cache.depth_map(0)[1].sum() > 20  # the points project into the frame with those poses
+    other = _two_view_sequence(tmp_path, rot_deg=5.0)  # SfM ran again: the same scene in another frame
+    with pytest.raises(InputError, match="another SfM model") as e:
+        prepare_sequences(cfg, [other], prev)
+    assert "poses.txt" in str(e.value) and "iteration=0" in str(e.value)
