@@ -56,7 +56,7 @@ def check_same_sfm(seq: Sequence, summary: dict, refined_cam_from_world: np.ndar
     if recorded is not None and now is not None:
         same = recorded == now
     else:
-        reg = np.flatnonzero(np.isfinite(seq.cam_from_world).all(axis=(1, 2)))
+        reg = np.flatnonzero(seq.registered)
         replaced = set((summary.get("resfm") or {}).get("replaced_frames") or [])
         same = None if (len(reg) and int(reg[0]) in replaced) else same_fixed_frame(seq.cam_from_world,
                                                                                      refined_cam_from_world)

@@ -221,7 +221,7 @@ def test_every_config_group_composes():
     assert cfg.bootstrap.epochs_per_iteration == 20 and cfg.data.height == 256 and cfg.iteration == 2
 
 
-def _two_view_sequence(tmp_path, rot_deg: float = 0.0, seed: int = 0):
+def _four_frame_sequence(tmp_path, rot_deg: float = 0.0, seed: int = 0):
     """Four frames looking down +z at 50 points; ``rot_deg`` turns the whole SfM world about y (another
     SfM run of the same video: same images, another world frame)."""
     from endorecon.data.sequence import Sequence
@@ -271,12 +271,12 @@ def test_poses_of_another_sfm_model_are_refused(tmp_path, recorded):
     from endorecon.tasks.train import prepare_sequences
 
     cfg = OmegaConf.create({"data": {"height": 64, "width": 80}, "paths": {"cache_dir": str(tmp_path / "cache")}})
-    seq = _two_view_sequence(tmp_path)
+    seq = _four_frame_sequence(tmp_path)
     prev = _previous_iteration(tmp_path, seq, record_fingerprint=recorded)
     prep = prepare_sequences(cfg, [seq], prev)[0]  # the model it was refined from: accepted
     assert np.allclose(prep.seq.cam_from_world[1:, :3, 3], seq.cam_from_world[1:, :3, 3] + 1e-3)
     assert prep.cache.depth_map(0)[1].sum() > 20  # the points project into the frame with those poses
-    other = _two_view_sequence(tmp_path, rot_deg=5.0)  # SfM ran again: the same scene in another frame
+    other = _four_frame_sequence(tmp_path, rot_deg=5.0)  # SfM ran again: the same scene in another frame
     with pytest.raises(InputError, match="another SfM model") as e:
         prepare_sequences(cfg, [other], prev)
     assert "poses.txt" in str(e.value) and "iteration=0" in str(e.value)
