@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from endorecon.tasks import pipeline
-from endorecon.utils.io import atomic_path, atomic_write_text
+from endorecon.utils.io import atomic_path, atomic_write_text, read_json
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ class BootstrapCallback(L.Callback):
             sdir = it_dir / "sequences" / pipeline._slug(seq.name)
             held_out = seq.patient == int(cfg.fold)
             if (sdir / "summary.json").is_file() and not (held_out and cfg.bootstrap.evaluate):
-                summary = json.loads((sdir / "summary.json").read_text())
+                summary = read_json(sdir / "summary.json", f"delete {sdir} so that the sequence is refined again")
             else:
                 depth, std, colors = pipeline.infer_depth(pl_module, seq, prep.cache)
                 summary = pipeline.refine_sequence(cfg, seq, prep.cache, depth, std, colors, prep.excluded, sdir)

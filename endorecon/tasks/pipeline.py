@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from endorecon.data.sequence import Sequence, read_poses_txt, sfm_fingerprint, write_poses_txt
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_save_npz, atomic_write_text
+from endorecon.utils.io import atomic_save_npz, atomic_write_text, read_json
 
 log = logging.getLogger(__name__)
 
@@ -269,7 +269,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
     out_dir = Path(out_dir)
     done = out_dir / "summary.json"
     if done.is_file():
-        return json.loads(done.read_text())
+        return read_json(done, f"delete {out_dir} so that the sequence is refined again")
     out_dir.mkdir(parents=True, exist_ok=True)
     n = len(seq)
     times = {}

@@ -15,7 +15,6 @@ included, and evaluates the held-out patient's mesh against its CT.
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -28,7 +27,7 @@ from endorecon.data.sequence import Sequence, read_poses_txt
 from endorecon.data.transforms import resize_sequence
 from endorecon.tasks import pipeline
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_write_text
+from endorecon.utils.io import atomic_write_text, read_json
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +84,8 @@ def prepare_sequences(cfg: DictConfig, sfm_seqs: list[Sequence], prev_dir: Path 
             if names != [p.name for p in small.frame_paths]:
                 raise InputError("refined poses list other frames than the sequence", sdir / "poses.txt",
                                  "delete the iteration dirs of this fold and rerun")
-            summary = json.loads((sdir / "summary.json").read_text())
+            summary = read_json(sdir / "summary.json",
+                                f"delete {prev_dir} and the iterations after it so that they are made again")
             check_same_sfm(seq, summary, poses, sdir, Path(cfg.paths.cache_dir) / "sfm")
             small = small.replace(cam_from_world=poses)
             sim, sim_valid = pipeline.load_simulated(sdir / "simulated_depth.npz")
@@ -124,7 +124,8 @@ def run(cfg: DictConfig) -> float | None:
     for it in todo:
         metrics = run_iteration(cfg, it, sfm_seqs, info)
     if metrics is None:
-        metrics = json.loads((iteration_dir(cfg, int(cfg.iteration)) / "metrics.json").read_text())
+        it_dir = iteration_dir(cfg, int(cfg.iteration))
+        metrics = read_json(it_dir / "metrics.json", f"delete {it_dir} so that the iteration is made again")
     ev = metrics.get("evaluation") or {}
     return ev.get("mean_mm")
 

@@ -3,7 +3,8 @@
 A crash therefore never leaves a half-written file under its final name, and
 stages can treat "the output file exists" as "the output is complete".
 :func:`file_id` is what a stage records of an input file to tell, later, whether
-its output was made from that same file.
+its output was made from that same file.  :func:`read_json` reads a record a
+stage wrote, turning a missing or damaged one into an :class:`InputError`.
 """
 
 from __future__ import annotations
@@ -16,6 +17,29 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+
+from endorecon.utils.errors import InputError
+
+
+def read_json(path: str | Path, fix: str) -> dict:
+    """A JSON object written by a stage; a missing, unreadable or damaged file is an InputError naming it.
+
+    Args:
+        path: the file.
+        fix: what the user should do (e.g. delete the run dir that holds it so that it is made again).
+    """
+    import json
+
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError as e:
+        raise InputError("the file is missing", path, fix) from e
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise InputError(f"cannot read it as JSON ({e})", path, fix) from e
+    if not isinstance(data, dict):
+        raise InputError(f"holds a JSON {type(data).__name__}, not an object", path, fix)
+    return data
 
 
 def file_id(path: str | Path) -> dict:

@@ -280,3 +280,44 @@ def test_poses_of_another_sfm_model_are_refused(tmp_path, recorded):
     with pytest.raises(InputError, match="another SfM model") as e:
         prepare_sequences(cfg, [other], prev)
     assert "poses.txt" in str(e.value) and "iteration=0" in str(e.value)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "missing", "not_an_object"])
+def test_damaged_summary_of_previous_iteration_names_the_file(tmp_path, damage):
+    """A previous iteration's summary.json that is cut short, gone or not a JSON object stops the next
+    iteration with an InputError naming that file and the iteration dir to delete, not a bare JSONDecodeError,
+    and leaves the file as it was."""
+    from omegaconf import OmegaConf
+
+    from endorecon.tasks.train import prepare_sequences
+
+    cfg = OmegaConf.create({"data": {"height": 64, "width": 80}, "paths": {"cache_dir": str(tmp_path / "cache")}})
+    seq = _four_frame_sequence(tmp_path)
+    prev = _previous_iteration(tmp_path, seq)
+    summary = prev / "sequences" / "patient_00__seq_00" / "summary.json"
+    if damage == "truncated":
+        summary.write_text(summary.read_text()[:10])
+    elif damage == "missing":
+        summary.unlink()
+    else:
+        summary.write_text("[1, 2]")
+    before = summary.read_bytes() if summary.exists() else None
+    with pytest.raises(InputError) as e:
+        prepare_sequences(cfg, [seq], prev)
+    msg = str(e.value)
+    assert str(summary) in msg and f"delete {prev}" in msg
+    assert (summary.read_bytes() if summary.exists() else None) == before
+
+
+def test_read_json(tmp_path):
+    from endorecon.utils.io import read_json
+
+    p = tmp_path / "a.json"
+    p.write_text('{"x": 1}')
+    assert read_json(p, "fix it") == {"x": 1}
+    p.write_text('{"x": ')
+    with pytest.raises(InputError, match="cannot read it as JSON") as e:
+        read_json(p, "delete it")
+    assert str(p) in str(e.value) and "fix: delete it" in str(e.value)
+    with pytest.raises(InputError, match="missing"):
+        read_json(tmp_path / "b.json", "make it")
