@@ -8,6 +8,8 @@ Two steps are timed alternately (interleaved, after warm-up steps, medians repor
 * ``net``: the same network forward + backward (loss = mean of the outputs) + optimizer step.
 
 The difference is the cost of the scaling layer and the four losses (with their warps).
+A third step, interleaved with them, is ``full`` with the network's memory layout flipped
+(``net.channels_last``; same weights): the layout's speed-up, measured in the same run.
 
     .venv/bin/python benchmarks/train_throughput.py                       # default CPU model
     .venv/bin/python benchmarks/train_throughput.py --model conf/model/fcdensenet57.yaml
@@ -80,11 +82,16 @@ def main(argv=None) -> None:
     module.train()
     net = module.net
     opt = torch.optim.AdamW(module.parameters(), lr=1e-5)
+    flipped_cfg = OmegaConf.merge(model_cfg, {"net": {"channels_last": not net.channels_last}})
+    flipped = DepthModule(flipped_cfg, OmegaConf.load(args.loss))
+    flipped.load_state_dict(module.state_dict())
+    flipped.train()
+    opt_flipped = torch.optim.AdamW(flipped.parameters(), lr=1e-5)
     batch = synthetic_batch(args.pairs, args.height, args.width)
     images = torch.cat([batch["image_i"], batch["image_j"]])
     masks = torch.cat([batch["mask_i"], batch["mask_j"]])
 
-    def full():
+    def full(module=module, opt=opt):
         parts = module.compute_losses(batch)
         total, _ = module.total_loss(parts, warmup=False)
         total.backward()
@@ -98,18 +105,21 @@ def main(argv=None) -> None:
         opt.step()
         opt.zero_grad(set_to_none=True)
 
-    t_full, t_net = [], []
+    t_full, t_net, t_flip = [], [], []
     for k in range(args.warmup + args.iters):
         t0 = time.perf_counter()
         total = full()
         t1 = time.perf_counter()
         net_only()
         t2 = time.perf_counter()
+        full(flipped, opt_flipped)
+        t3 = time.perf_counter()
         if not torch.isfinite(total):
             raise RuntimeError(f"non-finite loss at step {k}")
         if k >= args.warmup:
             t_full.append(t1 - t0)
             t_net.append(t2 - t1)
+            t_flip.append(t3 - t2)
     n_img = 2 * args.pairs
     mf, mn = statistics.median(t_full), statistics.median(t_net)
     print(f"model {args.model} {' '.join(args.set)}")
@@ -120,6 +130,10 @@ def main(argv=None) -> None:
     rel = [(f - n) / n for f, n in zip(t_full, t_net)]
     print(f"scaling + four losses cost {100 * (mf - mn) / mn:+.1f} % of the network step "
           f"(median of interleaved per-step ratios {100 * statistics.median(rel):+.1f} %)")
+    mx = statistics.median(t_flip)
+    layout = ("channels_last", "contiguous") if net.channels_last else ("contiguous", "channels_last")
+    print(f"full training step with the network {layout[1]}: median {mx:.3f} s -> {n_img / mx:.2f} images/s; "
+          f"{layout[0]} is x{mx / mf:.2f} that speed")
 
 
 if __name__ == "__main__":

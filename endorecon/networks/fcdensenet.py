@@ -80,6 +80,10 @@ class FCDenseNet(nn.Module):
             its per-channel mean over the mask (the whole frame without one): blind to a frame's exposure and
             white balance (set image_mean to 0 for it).
         depth_activation: ``"softplus"`` or ``"exp"`` (the head predicts log depth) for the depth head.
+        channels_last: keep the conv weights and feature maps in channels-last memory layout.  The same
+            maths in another layout: on CPU, oneDNN runs this network's small-channel convolutions, batch
+            norms and concatenations about twice as fast that way (benchmarks/train_throughput.py).  The
+            outputs are (B,1,H,W), for which both layouts are the same.
     """
 
     def __init__(
@@ -97,6 +101,7 @@ class FCDenseNet(nn.Module):
         image_std: Sequence[float] = (0.25, 0.25, 0.25),
         input_transform: str = "linear",
         depth_activation: str = "softplus",
+        channels_last: bool = True,
     ):
         super().__init__()
         if input_transform not in ("linear", "log", "log_centered"):
@@ -138,6 +143,9 @@ class FCDenseNet(nn.Module):
         self.depth_head = nn.Conv2d(prev, 1, 1)
         self.std_head = nn.Conv2d(prev, 1, 1)
         self._init_weights()
+        self.channels_last = bool(channels_last)
+        if self.channels_last:
+            self.to(memory_format=torch.channels_last)  # 4-D weights; state dicts load into either layout
 
     def _init_weights(self):
         for m in self.modules():
@@ -179,7 +187,10 @@ class FCDenseNet(nn.Module):
                 f"image size {H}x{W} must be divisible by 2**levels = {m} (levels = len(down_layers) = {self.levels}); "
                 f"resize/crop the frames or use fewer levels"
             )
-        x = self.first_conv(self.normalise(image, mask))
+        x = self.normalise(image, mask)
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        x = self.first_conv(x)
         skips = []
         for block, down in zip(self.down_blocks, self.trans_down):
             x = block(x)

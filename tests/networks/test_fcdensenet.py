@@ -85,3 +85,30 @@ def test_log_input_and_exp_depth():
         FCDenseNet(**TINY, input_transform="gamma")
     with pytest.raises(ValueError, match="depth_activation"):
         FCDenseNet(**TINY, depth_activation="relu")
+
+
+@pytest.mark.parametrize("train", [False, True])
+def test_channels_last_is_the_same_network(train):
+    """The memory layout is a speed option only: the same weights give the same depth, std and gradients in
+    either layout, and a state dict saved in one loads into the other."""
+    torch.manual_seed(0)
+    cl = FCDenseNet(**TINY, channels_last=True)
+    plain = FCDenseNet(**TINY, channels_last=False)
+    plain.load_state_dict(cl.state_dict())
+    assert cl.first_conv.weight.is_contiguous(memory_format=torch.channels_last)
+    assert plain.first_conv.weight.is_contiguous()
+    cl.train(train), plain.train(train)
+    img = torch.rand(2, 3, 32, 40)
+    mask = torch.rand(2, 1, 32, 40) > 0.2
+    (d1, s1), (d2, s2) = cl(img, mask), plain(img, mask)
+    assert d1.shape == d2.shape == (2, 1, 32, 40)
+    torch.testing.assert_close(d1, d2, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(s1, s2, rtol=1e-5, atol=1e-6)
+    (d1.mean() + s1.mean()).backward()
+    (d2.mean() + s2.mean()).backward()
+    for (name, p1), p2 in zip(cl.named_parameters(), plain.parameters()):
+        torch.testing.assert_close(p1.grad, p2.grad, rtol=1e-4, atol=1e-6, msg=name)
+    back = FCDenseNet(**TINY, channels_last=True)
+    back.load_state_dict(plain.state_dict())
+    assert back.first_conv.weight.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(back.first_conv.weight, plain.first_conv.weight)
