@@ -8,13 +8,13 @@ code never does.  The layout is documented in :mod:`endorecon.phantom.generate`.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from endorecon.data.sequence import GroundTruth, Sequence, load_sequence_folder, read_poses_txt
 from endorecon.utils.errors import InputError
+from endorecon.utils.io import read_json
 
 FORMAT = "endorecon-phantom"
 
@@ -30,10 +30,7 @@ def read_dataset_meta(root: str | Path) -> dict:
         raise InputError(
             "phantom dataset is incomplete (no COMPLETE marker)", root, "delete the folder and generate it again"
         )
-    try:
-        meta = json.loads((root / "dataset.json").read_text())
-    except (OSError, ValueError) as e:
-        raise InputError(f"cannot read dataset.json ({e})", root / "dataset.json", "generate the dataset again") from e
+    meta = read_json(root / "dataset.json", "generate the dataset again")
     if meta.get("format") != FORMAT or "patients" not in meta:
         raise InputError(f"not an {FORMAT} dataset", root / "dataset.json", "point at a folder made by endorecon.phantom")
     if meta.get("version", 0) > 1:

@@ -10,6 +10,7 @@ stage wrote, turning a missing or damaged one into an :class:`InputError`.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import tempfile
@@ -28,8 +29,6 @@ def read_json(path: str | Path, fix: str) -> dict:
         path: the file.
         fix: what the user should do (e.g. delete the run dir that holds it so that it is made again).
     """
-    import json
-
     path = Path(path)
     try:
         data = json.loads(path.read_text())
