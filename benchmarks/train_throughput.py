@@ -14,11 +14,17 @@ A third step, interleaved with them, is ``full`` with the network's memory layou
     .venv/bin/python benchmarks/train_throughput.py                       # default CPU model
     .venv/bin/python benchmarks/train_throughput.py --model conf/model/fcdensenet57.yaml
     .venv/bin/python benchmarks/train_throughput.py --set net.growth_rate=8 --set net.down_layers=[2,2,2,2,2]
+    python benchmarks/train_throughput.py --device cuda --precision bf16 --height 256 --width 320   # a GPU
+
+``--precision bf16`` / ``16`` runs forward and losses under autocast as Lightning's ``bf16-mixed`` /
+``16-mixed`` do (``16`` with a gradient scaler); it also prints how far the mixed-precision losses of
+the first batch are from the float32 ones.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import statistics
 import sys
@@ -73,46 +79,79 @@ def main(argv=None) -> None:
     ap.add_argument("--warmup", type=int, default=10)
     ap.add_argument("--iters", type=int, default=10)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda")
+    ap.add_argument("--precision", default="32", choices=["32", "bf16", "16"], help="float32, or mixed precision")
     args = ap.parse_args(argv)
+    dev = torch.device(args.device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: torch sees no CUDA device on this machine")
+    if args.precision == "32":
+        autocast = contextlib.nullcontext
+    else:
+        dtype = torch.bfloat16 if args.precision == "bf16" else torch.float16
+        autocast = lambda: torch.autocast(dev.type, dtype=dtype)  # noqa: E731
+    scaler = torch.amp.GradScaler(dev.type, enabled=args.precision == "16")
+
+    def sync():
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
     if args.threads:
         torch.set_num_threads(args.threads)
     model_cfg = OmegaConf.merge(OmegaConf.load(args.model), OmegaConf.from_dotlist(args.set))
     torch.manual_seed(0)
-    module = DepthModule(model_cfg, OmegaConf.load(args.loss))
+    module = DepthModule(model_cfg, OmegaConf.load(args.loss)).to(dev)
     module.train()
     net = module.net
     opt = torch.optim.AdamW(module.parameters(), lr=1e-5)
     flipped_cfg = OmegaConf.merge(model_cfg, {"net": {"channels_last": not net.channels_last}})
-    flipped = DepthModule(flipped_cfg, OmegaConf.load(args.loss))
+    flipped = DepthModule(flipped_cfg, OmegaConf.load(args.loss)).to(dev)
     flipped.load_state_dict(module.state_dict())
     flipped.train()
     opt_flipped = torch.optim.AdamW(flipped.parameters(), lr=1e-5)
-    batch = synthetic_batch(args.pairs, args.height, args.width)
+    batch = {k: v.to(dev) for k, v in synthetic_batch(args.pairs, args.height, args.width).items()}
     images = torch.cat([batch["image_i"], batch["image_j"]])
     masks = torch.cat([batch["mask_i"], batch["mask_j"]])
 
-    def full(module=module, opt=opt):
-        parts = module.compute_losses(batch)
-        total, _ = module.total_loss(parts, warmup=False)
-        total.backward()
-        opt.step()
+    if args.precision != "32":  # the mixed-precision losses against float32 ones, same weights and batch
+        with torch.no_grad():
+            ref = module.compute_losses(batch)
+            with autocast():
+                mixed = module.compute_losses(batch)
+        print("losses float32 vs " + args.precision + "-mixed: " + ", ".join(
+            f"{k} {ref[k].item():.4g} vs {mixed[k].item():.4g}" for k in ("sparse_depth", "depth_consistency",
+                                                                         "sparse_flow", "dense_simulation")))
+
+    def step(loss, opt):
+        scaler.scale(loss).backward()
+        scaler.step(opt)
+        scaler.update()
         opt.zero_grad(set_to_none=True)
+
+    def full(module=module, opt=opt):
+        with autocast():
+            parts = module.compute_losses(batch)
+            total, _ = module.total_loss(parts, warmup=False)
+        step(total, opt)
         return total
 
     def net_only():
-        d, s = net(images, masks)
-        (d.mean() + s.mean()).backward()
-        opt.step()
-        opt.zero_grad(set_to_none=True)
+        with autocast():
+            d, s = net(images, masks)
+            loss = d.mean() + s.mean()
+        step(loss, opt)
 
     t_full, t_net, t_flip = [], [], []
     for k in range(args.warmup + args.iters):
+        sync()
         t0 = time.perf_counter()
         total = full()
+        sync()
         t1 = time.perf_counter()
         net_only()
+        sync()
         t2 = time.perf_counter()
         full(flipped, opt_flipped)
+        sync()
         t3 = time.perf_counter()
         if not torch.isfinite(total):
             raise RuntimeError(f"non-finite loss at step {k}")
@@ -123,8 +162,9 @@ def main(argv=None) -> None:
     n_img = 2 * args.pairs
     mf, mn = statistics.median(t_full), statistics.median(t_net)
     print(f"model {args.model} {' '.join(args.set)}")
+    where = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"cpu, torch threads {torch.get_num_threads()}"
     print(f"parameters {count_parameters(net):,}; {args.height}x{args.width}; {args.pairs} pairs = {n_img} images/step; "
-          f"torch threads {torch.get_num_threads()}; load avg {os.getloadavg()[0]:.1f}")
+          f"{where}; precision {args.precision}; load avg {os.getloadavg()[0]:.1f}")
     print(f"full training step  : median {mf:.3f} s  -> {n_img / mf:.2f} images/s  (min {min(t_full):.3f} s)")
     print(f"network fwd+bwd+step: median {mn:.3f} s  -> {n_img / mn:.2f} images/s  (min {min(t_net):.3f} s)")
     rel = [(f - n) / n for f, n in zip(t_full, t_net)]

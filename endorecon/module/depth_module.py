@@ -156,7 +156,13 @@ class DepthModule(L.LightningModule):
         if missing:
             raise KeyError(f"batch lacks {missing}")
         image, mask = _cat(batch, "image_i", "image_j"), _cat(batch, "mask_i", "mask_j").bool()
-        depth, std = self.net(image, mask)
+        depth, std = self.net(image, mask)  # float32 also under autocast
+        # Scaling, warps and losses in float32 also under mixed precision (trainer=gpu): autocast would run
+        # the projections' matmuls in 16 bits, and bfloat16 pixel coordinates are ~0.5 px off at 100 px.
+        with torch.autocast(depth.device.type, enabled=False):
+            return self._losses(batch, depth, std, mask)
+
+    def _losses(self, batch: Mapping, depth: torch.Tensor, std: torch.Tensor, mask: torch.Tensor) -> dict:
         sparse_depth = _cat(batch, "sparse_depth_i", "sparse_depth_j")
         sparse_valid = _cat(batch, "sparse_valid_i", "sparse_valid_j").bool()
         depth, std, _, has_sparse = scale_depth(depth, std, sparse_depth, sparse_valid, self.eps, self.scale_mode)

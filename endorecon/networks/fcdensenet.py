@@ -175,8 +175,8 @@ class FCDenseNet(nn.Module):
             image: (B, C, H, W) in [0, 1]; H and W divisible by 2**levels.
             mask: optional (B, 1, H, W) bool; the input is zeroed outside it (after normalisation).
         Returns:
-            depth: (B, 1, H, W) > 0 (up to scale).
-            std: (B, 1, H, W) >= std_floor.
+            depth: (B, 1, H, W) > 0 (up to scale), float32 also under autocast.
+            std: (B, 1, H, W) >= std_floor, float32 also under autocast.
         """
         B, C, H, W = check_shape(image, "image", (None, self.image_mean.shape[1], None, None))
         if mask is not None:
@@ -199,10 +199,12 @@ class FCDenseNet(nn.Module):
         x = self.bottleneck(x)
         for up, block in zip(self.trans_up, self.up_blocks):
             x = block(torch.cat([up(x), skips.pop()], 1))
-        a = self.depth_head(x)
+        # Heads' outputs in float32: under mixed precision (trainer=gpu) the NLL losses' eps 1e-8 and
+        # squared residuals in mm would underflow / lose digits in float16.
+        a = self.depth_head(x).float()
         # exp: clamped so that a diverging step gives a large finite depth, not inf
         depth = (F.softplus(a) if self.depth_activation == "softplus" else torch.exp(a.clamp(max=20.0))) + self.min_depth
-        std = F.softplus(self.std_head(x)) + self.std_floor
+        std = F.softplus(self.std_head(x).float()) + self.std_floor
         return depth, std
 
 

@@ -172,6 +172,22 @@ def test_loss_weights_and_warmup_honoured():
         assert module.compute_losses(batch)["dense_simulation_active"].item() == 0.0
 
 
+def test_losses_stay_float32_under_autocast():
+    """Mixed precision (trainer=gpu) runs the network in 16 bits but not the geometry: the losses of a batch
+    under bfloat16 autocast are the float32 ones up to the network's own rounding (the sparse flow loss, whose
+    projections autocast would otherwise run in bfloat16, was ~3 % off on train_throughput.py's batch)."""
+    torch.manual_seed(0)
+    module = DepthModule(_model_cfg(), {"warmup_epochs": 0})
+    batch = make_batch(B=2)
+    with torch.no_grad():
+        ref = module.compute_losses(batch)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            mixed = module.compute_losses(batch)
+    for k in ("sparse_depth", "depth_consistency", "sparse_flow"):
+        assert mixed[k].dtype == torch.float32, k
+        torch.testing.assert_close(mixed[k], ref[k], rtol=2e-3, atol=2e-3, msg=k)
+
+
 def test_unknown_loss_key_rejected():
     with pytest.raises(ValueError, match="unknown cfg.loss keys"):
         DepthModule(_model_cfg(), {"sparse_flw": 1.0})

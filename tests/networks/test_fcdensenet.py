@@ -112,3 +112,20 @@ def test_channels_last_is_the_same_network(train):
     back.load_state_dict(plain.state_dict())
     assert back.first_conv.weight.is_contiguous(memory_format=torch.channels_last)
     torch.testing.assert_close(back.first_conv.weight, plain.first_conv.weight)
+
+
+def test_outputs_are_float32_under_autocast():
+    """trainer=gpu trains in mixed precision: the heads' outputs stay float32 (the NLL losses' eps and squared
+    residuals would not survive 16-bit), and are close to the full-precision ones."""
+    torch.manual_seed(0)
+    net = FCDenseNet(**TINY).eval()
+    img = torch.rand(2, 3, 32, 40)
+    with torch.no_grad():
+        d32, s32 = net(img)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            d16, s16 = net(img)
+            # the heads' convolutions did run in bfloat16 (else this test would not test the cast)
+            assert net.depth_head(torch.rand(1, net.depth_head.in_channels, 4, 4)).dtype == torch.bfloat16
+    assert d16.dtype == s16.dtype == torch.float32
+    torch.testing.assert_close(d16, d32, rtol=0.05, atol=0.02)
+    torch.testing.assert_close(s16, s32, rtol=0.05, atol=0.02)
