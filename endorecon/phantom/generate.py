@@ -141,7 +141,7 @@ def _check_args(patients, sequences, frames, height, width) -> None:
 
 def generate(
     out: str | Path,
-    patients: int = 6,
+    patients: int = 10,
     sequences: int = 1,
     frames: int = 60,
     height: int = 256,
@@ -331,7 +331,7 @@ def ensure_dataset(cfg: Any, root: str | Path | None = None) -> Path:
         raise InputError("no phantom root given", fix="set data.root (e.g. ${paths.data_dir}/phantom)")
     root = Path(root)
     kw = dict(
-        patients=int(get("patients", 6)),
+        patients=int(get("patients", 10)),
         sequences=int(get("sequences", 1)),
         frames=int(get("frames", 60)),
         height=int(get("height", 256)),
