@@ -1,10 +1,11 @@
-"""Benchmark: dense pose graph optimisation, stds cached once vs carried again at every evaluation.
+"""Benchmark: dense pose graph optimisation, its constants computed once vs again at every evaluation.
 
 With ``pgo.freeze_std`` the NLLs' stds are carried between frames at the fixed SfM poses, so they are
 constants of the optimisation: ``optimize_poses`` computes them once per edge (``std_cache_mb`` > 0, the
 default) instead of once per objective evaluation (``std_cache_mb=0``: the consistency term's carried std is
 recomputed per evaluation; the flow std is cached either way).  The peer ``freeze_std=false`` carries them at
-the current poses (the cost before freezing).  Scene: the tests' analytic cavity (tests/pgo/synthetic_scene.py)
+the current poses (the cost before freezing).  ``flow_at_points=false`` evaluates the sparse flow term as
+dense flow maps at every pixel (the cost before the points were back-projected once per edge).  Scene: the tests' analytic cavity (tests/pgo/synthetic_scene.py)
 at the CPU default's PGO size (64x80, half the 128x160 network resolution), 30 frames, neighbours 5-8 both
 ways, depth with a smooth 3 % error, poses off by ~0.1° / 0.3 % of the depth (about SfM's on the phantom),
 flow with 0.2 px noise, the default 10 L-BFGS iterations.
@@ -57,6 +58,7 @@ def main() -> None:
     variants = {
         "frozen, cached (default)": {},
         "frozen, carried per evaluation": {"std_cache_mb": 0},
+        "flow maps at every pixel": {"flow_at_points": False},
         "free stds (freeze_std=false)": {"freeze_std": False},
     }
     times, results = {}, {}

@@ -9,6 +9,7 @@ from endorecon.losses.nll import (
     propagated_flow_std,
     sparse_depth_loss,
     sparse_flow_loss,
+    sparse_flow_loss_points,
 )
 
 __all__ = [
@@ -20,4 +21,5 @@ __all__ = [
     "propagated_flow_std",
     "sparse_depth_loss",
     "sparse_flow_loss",
+    "sparse_flow_loss_points",
 ]

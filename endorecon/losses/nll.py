@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import torch
 
-from endorecon.geometry import flow_from_depth, unproject, warp_depth
+from endorecon.geometry import flow_from_depth, project, unproject, warp_depth
 from endorecon.geometry._checks import check_shape
 
 _REDUCTIONS = ("mean", "none")
@@ -337,3 +337,57 @@ def sparse_flow_loss(
     nll = gaussian_nll(obs, flow / size, var, eps).sum(1, keepdim=True)
     nll = _safe(nll, valid, 0.0)  # pixels that fail only the z_j test may be non-finite
     return _reduce(nll, valid, reduction)
+
+
+def sparse_flow_loss_points(
+    points_i: torch.Tensor,
+    uv_i: torch.Tensor,
+    K: torch.Tensor,
+    cam_j_from_cam_i: torch.Tensor,
+    flow_ij: torch.Tensor,
+    flow_std_ij: torch.Tensor,
+    valid: torch.Tensor,
+    image_size: tuple[int, int],
+    eps: float = 1e-8,
+    reduction: str = "mean",
+    flow_std_floor: float = 1e-3,
+    min_depth: float = 1e-6,
+) -> torch.Tensor:
+    """:func:`sparse_flow_loss` with a given flow std (``flow_std_ij``), evaluated at the sparse points only.
+
+    A dense map is mostly empty (an SfM pair has a few hundred tracks among thousands of pixels); when depth
+    and flow std do not change between calls (pose graph optimisation: only poses move) the points can be
+    back-projected once and only they moved per call.  Same value as the dense loss on the same points.
+
+    Args:
+        points_i: (B, M, 3) frame i's points at its sparse pixels, depth_i · K⁻¹(u, v, 1)ᵀ.
+        uv_i: (B, M, 2) those pixels (u = column, v = row, pixel centres at integers).
+        K: (B, 3, 3).  cam_j_from_cam_i: (B, 4, 4).
+        flow_ij: (B, M, 2) SfM pixel displacement i -> j.
+        flow_std_ij: (B, M, 2) flow std in image-size units (:func:`propagated_flow_std` at the points).
+        valid: (B, M) bool; padding and unusable points False (their values, NaN included, never count).
+        image_size: (H, W) of the images, the flow normalisation.
+    Returns:
+        scalar ("mean") or (B,) ("none"), as :func:`sparse_flow_loss`.
+    """
+    B, M, _ = check_shape(points_i, "points_i", (None, None, 3))
+    check_shape(uv_i, "uv_i", (B, M, 2))
+    check_shape(K, "K", (B, 3, 3))
+    check_shape(cam_j_from_cam_i, "cam_j_from_cam_i", (B, 4, 4))
+    check_shape(flow_ij, "flow_ij", (B, M, 2))
+    check_shape(flow_std_ij, "flow_std_ij", (B, M, 2))
+    check_shape(valid, "valid", (B, M))
+    H, W = image_size
+    ok = (valid.bool() & torch.isfinite(points_i).all(-1) & (points_i[..., 2] > min_depth)
+          & torch.isfinite(flow_ij).all(-1) & torch.isfinite(flow_std_ij).all(-1))
+    ok2 = ok[..., None].expand(-1, -1, 2)
+    X_i = _safe(points_i, ok[..., None].expand(-1, -1, 3), 1.0)
+    R, t = cam_j_from_cam_i[:, :3, :3], cam_j_from_cam_i[:, :3, 3]
+    uv_j, z_j = project(X_i @ R.transpose(1, 2) + t[:, None], K)
+    ok = ok & (z_j > min_depth)
+    size = torch.tensor([W, H], dtype=X_i.dtype, device=X_i.device)
+    var = _safe(flow_std_ij.to(X_i.dtype), ok2, 1.0) ** 2 + flow_std_floor**2
+    obs = _safe(flow_ij.to(X_i.dtype), ok2, 0.0) / size
+    nll = gaussian_nll(obs, (uv_j - _safe(uv_i.to(X_i.dtype), ok2, 0.0)) / size, var, eps).sum(-1)
+    nll = _safe(nll, ok, 0.0)  # points that fail only the z_j test may be non-finite
+    return _reduce(nll[:, None, :, None], ok[:, None, :, None], reduction)

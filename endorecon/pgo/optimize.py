@@ -41,9 +41,15 @@ from typing import Callable, Mapping
 import numpy as np
 import torch
 
-from endorecon.geometry import invert_pose, rotation_angle_deg, se3_exp
+from endorecon.geometry import invert_pose, pixel_grid, rotation_angle_deg, se3_exp, unproject
 from endorecon.geometry._checks import check_shape
-from endorecon.losses import carried_std, depth_consistency_loss, propagated_flow_std, sparse_flow_loss
+from endorecon.losses import (
+    carried_std,
+    depth_consistency_loss,
+    propagated_flow_std,
+    sparse_flow_loss,
+    sparse_flow_loss_points,
+)
 
 DEFAULTS = {
     "neighbors": [5, 6, 7, 8],
@@ -55,6 +61,7 @@ DEFAULTS = {
     "lr": 1.0,
     "line_search_evals": 10,
     "freeze_std": True,
+    "flow_at_points": True,
     "std_cache_mb": 512,
     "normalize_depth": True,
     "edge_chunk": 32,
@@ -117,6 +124,7 @@ class _Edges:
         self.H, self.W, self.dtype, self.device = H, W, dtype, device
         self.flow_std = None  # per edge: None or (M, 2) flow std at idx
         self.cons_std = None  # (n_edges, 1, H, W) carried std_j, or None: carried per evaluation
+        self.points = None  # (points_i, uv_i, flow, flow_std, valid), each (n_edges, M, .), padded; or None
 
     def dense(self, ks):
         """Flows (B, 2, H, W), valid (B, 1, H, W), has-flow (B,) and, if frozen, flow stds (B, 2, H, W)."""
@@ -136,12 +144,14 @@ class _Edges:
         shape = (B, 2, self.H, self.W)
         return flow.view(shape), valid.view(B, 1, self.H, self.W), has, None if fstd is None else fstd.view(shape)
 
-    def freeze_stds(self, T0, depth, std, K, mask, chunk: int, cache_mb: float) -> None:
-        """Carry the stds of every edge at the initial poses ``T0`` once (see :func:`_edge_losses`)."""
+    def freeze_stds(self, T0, depth, std, K, mask, chunk: int, cache_mb: float, at_points: bool = False) -> None:
+        """Carry the stds of every edge at the initial poses ``T0`` once (see :func:`_edge_losses`); with
+        ``at_points`` also gather each edge's sparse points (:meth:`_gather_points`)."""
         n = len(self.edges)
         cache_cons = n * self.H * self.W * depth.element_size() <= cache_mb * 2**20
         self.flow_std = [None] * n
         cons = [] if cache_cons else None
+        points = [None] * n
         with torch.no_grad():
             for s in range(0, n, chunk):
                 ks = list(range(s, min(s + chunk, n)))
@@ -150,10 +160,37 @@ class _Edges:
                 if cache_cons:
                     cons.append(carried_std(depth[ii], std[ii], depth[jj], std[jj], K[ii], T_ji0, m))
                 fs = propagated_flow_std(depth[ii], std[ii], K[ii], T_ji0).flatten(2)
+                X = unproject(depth[ii], K[ii]).flatten(2) if at_points else None
                 for b, k in enumerate(ks):
                     if self.flows[k] is not None:
-                        self.flow_std[k] = fs[b][:, self.flows[k][0]].T.contiguous()
+                        idx = self.flows[k][0]
+                        self.flow_std[k] = fs[b][:, idx].T.contiguous()
+                        if at_points:
+                            # a point is usable where the dense loss would use its pixel (finite, positive depth)
+                            d = depth[ii[b], 0].flatten()[idx]
+                            ok = torch.isfinite(d) & (d > 1e-6) & torch.isfinite(std[ii[b], 0].flatten()[idx])
+                            points[k] = (X[b][:, idx].T, ok)
         self.cons_std = torch.cat(cons) if cache_cons else None
+        if at_points:
+            self.points = self._gather_points(points)
+
+    def _gather_points(self, points):
+        """Per-edge (points (M, 3), ok (M,)) -> padded (n_edges, M_max, .) tensors; padding is invalid."""
+        n, m_max = len(self.edges), max([1] + [len(p[1]) for p in points if p is not None])
+        X = torch.ones(n, m_max, 3, dtype=self.dtype, device=self.device)
+        uv = torch.zeros(n, m_max, 2, dtype=self.dtype, device=self.device)
+        flow = torch.zeros_like(uv)
+        fstd = torch.ones_like(uv)
+        ok = torch.zeros(n, m_max, dtype=torch.bool, device=self.device)
+        grid = pixel_grid(self.H, self.W, self.device, self.dtype).reshape(-1, 2)
+        for k, p in enumerate(points):
+            if p is None:
+                continue
+            idx, f = self.flows[k]
+            M = len(idx)
+            X[k, :M], ok[k, :M] = p
+            uv[k, :M], flow[k, :M], fstd[k, :M] = grid[idx], f, self.flow_std[k]
+        return X, uv, flow, fstd, ok
 
     def _pairs(self, ks, T0):
         ii = [self.edges[k][0] for k in ks]
@@ -180,6 +217,9 @@ def _edge_losses(xi, T0, depth, std, K, mask, E: _Edges, ks, w_flow, w_cons):
         carried = {"std_pose": T_ji0} if frozen else {}
     cons = depth_consistency_loss(depth[ii], std[ii], depth[jj], std[jj], Kb, T_ji, m, reduction="none", **carried)
     out = w_cons * cons
+    if E.points is not None:  # the sparse points only; an edge without flow has none valid and costs 0
+        X, uv, flow, flow_std, ok = (t[ks] for t in E.points)
+        return out + w_flow * sparse_flow_loss_points(X, uv, Kb, T_ji, flow, flow_std, ok, (E.H, E.W), reduction="none")
     flow, valid, has, flow_std = E.dense(ks)
     if has.any():
         fl = sparse_flow_loss(depth[ii], std[ii], Kb, T_ji, flow, valid & m, reduction="none", flow_std_ij=flow_std)
@@ -267,7 +307,8 @@ def optimize_poses(
     E = _Edges(pairs, flows, H, W, dt, dev)
     n_e = len(pairs)
     if freeze_std:
-        E.freeze_stds(T0, depth_n, std_n, Kd, mask_b, chunk, float(_get(cfg, "std_cache_mb")))
+        E.freeze_stds(T0, depth_n, std_n, Kd, mask_b, chunk, float(_get(cfg, "std_cache_mb")),
+                      at_points=bool(_get(cfg, "flow_at_points")))
 
     free = torch.tensor([registered[k] and k != fixed for k in range(N)], device=dev)[:, None].to(dt)
     xi = torch.zeros(N, 6, dtype=dt, device=dev, requires_grad=True)

@@ -1,4 +1,4 @@
-"""``python -m endorecon.phantom out=<dir> [patients=10 frames=60 height=256 width=320 seed=0 mesh=<path>]``.
+"""``python -m endorecon.phantom out=<dir> [patients=14 frames=60 height=256 width=320 seed=0 mesh=<path>]``.
 
 Keys and defaults live in ``conf/phantom.yaml``; arguments are ``key=value``
 overrides of it (unknown keys are an error).
@@ -13,18 +13,21 @@ from pathlib import Path
 from endorecon.utils.errors import EndoreconError, InputError
 
 CONF = Path(__file__).resolve().parents[2] / "conf" / "phantom.yaml"
-# used when the package is installed without the conf/ folder next to it
-DEFAULTS = dict(
-    out=None, patients=10, sequences=1, frames=60, height=256, width=320, seed=0, mesh=None, waypoints=None,
-    fov_deg=100.0, step_mm=0.35, motion_blur=0, jpeg_quality=92,
-)
+
+
+def defaults() -> dict:
+    """``out`` and the generator's keyword defaults: what applies when the package is installed without
+    the conf/ folder next to it."""
+    from endorecon.phantom.generate import generator_defaults
+
+    return {"out": None, **generator_defaults()}
 
 
 def parse_args(argv: list[str]) -> dict:
     """``key=value`` overrides of the phantom config -> kwargs of :func:`endorecon.phantom.generate`."""
     import yaml
 
-    cfg = dict(DEFAULTS)
+    cfg = defaults()
     if CONF.is_file():
         cfg.update(yaml.safe_load(CONF.read_text()) or {})
     for arg in argv:

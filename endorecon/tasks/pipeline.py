@@ -234,7 +234,7 @@ def refine_poses(cfg_pgo: DictConfig, seq: Sequence, cache, depth, std):
 # Config groups that the end-of-iteration stage (refine_sequence) reads, less the keys that do not change
 # its output (how it runs, not what it computes)
 REFINE_SETTINGS = ("fusion", "failure", "pgo")
-_NO_EFFECT = {"fusion": ("compile", "device"), "pgo": ("progress", "std_cache_mb")}
+_NO_EFFECT = {"fusion": ("compile", "device"), "pgo": ("progress", "std_cache_mb", "flow_at_points")}
 
 
 def refine_settings(cfg) -> dict | None:

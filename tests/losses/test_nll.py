@@ -15,6 +15,7 @@ from endorecon.losses import (
     propagated_flow_std,
     sparse_depth_loss,
     sparse_flow_loss,
+    sparse_flow_loss_points,
 )
 
 H, W = 12, 16
@@ -323,3 +324,76 @@ def test_precomputed_stds_equal_std_pose_and_exclude_it():
         sparse_flow_loss(d_i, s, K, T, flow, mask, std_pose=T0, flow_std_ij=fstd)
     with pytest.raises(ValueError, match="not both"):
         depth_consistency_loss(d_i, s, d_j, s, K, T, mask, std_pose=T0, std_j_in_i=carried)
+
+
+# ---------------------------------------------------------------- sparse flow at the points only (PGO)
+def _gather_points(depth, K, flow, fstd, valid):
+    """Dense maps -> the padded (B, M, .) point tensors of sparse_flow_loss_points (padding NaN, invalid)."""
+    from endorecon.geometry import pixel_grid, unproject
+
+    B = depth.shape[0]
+    X = unproject(depth, K).flatten(2).transpose(1, 2)
+    uv = pixel_grid(H, W, dtype=depth.dtype).reshape(-1, 2)
+    idx = [torch.nonzero(valid[b, 0].flatten()).flatten() for b in range(B)]
+    M = max(len(i) for i in idx) + 3  # some padding on every sample
+    out = [torch.full((B, M, c), float("nan"), dtype=depth.dtype) for c in (3, 2, 2, 2)]
+    ok = torch.zeros(B, M, dtype=torch.bool)
+    for b, i in enumerate(idx):
+        for o, v in zip(out, (X[b, i], uv[i], flow[b].flatten(1)[:, i].T, fstd[b].flatten(1)[:, i].T)):
+            o[b, : len(i)] = v
+        ok[b, : len(i)] = True
+    return (*out, ok)
+
+
+def test_flow_at_points_equals_the_dense_loss():
+    g = torch.Generator().manual_seed(21)
+    d = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) * 0.5 + 3
+    s = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) * 0.2 + 0.05
+    K, T0 = _K(2), _pose(tx=0.3, ty=-0.1, angle=0.05, B=2)
+    T = _pose(tx=0.28, ty=-0.08, tz=0.02, angle=0.06, B=2)
+    flow = torch.randn(2, 2, H, W, generator=g, dtype=torch.float64) * 2
+    valid = torch.stack([_rand_mask(1, 0.2, seed=22)[0], _rand_mask(1, 0.5, seed=23)[0]])
+    fstd = propagated_flow_std(d, s, K, T0)
+    X, uv, f, fs, ok = _gather_points(d, K, flow, fstd, valid)
+    for red in ("none", "mean"):
+        want = sparse_flow_loss(d, s, K, T, flow, valid, reduction=red, flow_std_ij=fstd)
+        got = sparse_flow_loss_points(X, uv, K, T, f, fs, ok, (H, W), reduction=red)
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    # points behind camera j at the current pose are left out, as in the dense loss
+    behind = _pose(tz=-3.4, B=2)
+    torch.testing.assert_close(sparse_flow_loss_points(X, uv, K, behind, f, fs, ok, (H, W), reduction="none"),
+                               sparse_flow_loss(d, s, K, behind, flow, valid, reduction="none", flow_std_ij=fstd),
+                               rtol=1e-12, atol=1e-12)
+
+
+def test_flow_at_points_analytic_padding_and_nan():
+    depth, std, K, T, flow, valid = _flow_case()
+    floor = 1e-3
+    fstd = propagated_flow_std(depth, std, K, T)
+    X, uv, f, fs, ok = _gather_points(depth, K, flow, fstd, valid)
+    var_u = (14.0 * 0.4 / 16.0 * 0.2 / 16.0) ** 2 + floor**2
+    want = 0.5 * math.log(var_u + 1e-8) + 0.5 * math.log(floor**2 + 1e-8)
+    assert sparse_flow_loss_points(X, uv, K, T, f, fs, ok, (H, W)).item() == pytest.approx(want, rel=1e-9)
+    # invalid points hold anything (here: wild and inf values) and count neither in value nor gradient
+    Xw = torch.where(ok[..., None], X, torch.full_like(X, float("inf"))).requires_grad_()
+    fw = torch.where(ok[..., None], f, f.nan_to_num(0) * 1e5)
+    out = sparse_flow_loss_points(Xw, uv, K, T, fw, fs, ok, (H, W), reduction="none")
+    assert out.item() == pytest.approx(want, rel=1e-9)
+    out.sum().backward()
+    assert torch.isfinite(Xw.grad).all() and (Xw.grad[~ok] == 0).all()
+    assert sparse_flow_loss_points(X, uv, K, T, f, fs, torch.zeros_like(ok), (H, W)).item() == 0.0
+
+
+def test_flow_at_points_gradcheck():
+    g = torch.Generator().manual_seed(24)
+    K = _K(1)
+    X = torch.rand(1, 7, 3, generator=g, dtype=torch.float64)
+    X[..., 2] += 3
+    X.requires_grad_()
+    uv = torch.rand(1, 7, 2, generator=g, dtype=torch.float64) * 10
+    flow = torch.randn(1, 7, 2, generator=g, dtype=torch.float64)
+    fs = (torch.rand(1, 7, 2, generator=g, dtype=torch.float64) * 0.05 + 0.01).requires_grad_()
+    ok = torch.tensor([[True] * 6 + [False]])
+    T = _pose(tx=0.3, ty=0.1, tz=0.2, angle=0.05).requires_grad_()
+    fn = lambda a, t, c: sparse_flow_loss_points(a, uv, K, t, flow, c, ok, (H, W), flow_std_floor=1e-2)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (X, T, fs))

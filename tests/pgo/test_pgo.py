@@ -80,7 +80,7 @@ def test_ground_truth_poses_stay_put_and_unregistered_frames_stay_nan(scene, noi
     assert res.loss_after <= res.loss_before + 1e-3 * abs(res.loss_before)
 
 
-@pytest.mark.parametrize("stds", ["free", "frozen_cached", "frozen_uncached"])
+@pytest.mark.parametrize("stds", ["free", "frozen_cached", "frozen_uncached", "frozen_points"])
 def test_edge_objective_gradcheck(scene, stds):
     # Gradient of one edge batch w.r.t. the twists, float64, on a 3-frame 8x10 crop.
     H, W = 8, 10
@@ -96,16 +96,24 @@ def test_edge_objective_gradcheck(scene, stds):
     T0 = scene.cam_from_world[:3].clone()
     Kb = K[None].expand(3, 3, 3)
     if stds != "free":
-        E.freeze_stds(T0, depth, 0.05 * depth, Kb, mask, chunk=1, cache_mb=1.0 if stds == "frozen_cached" else 0.0)
+        E.freeze_stds(T0, depth, 0.05 * depth, Kb, mask, chunk=1, cache_mb=1.0 if stds == "frozen_cached" else 0.0,
+                      at_points=stds == "frozen_points")
         assert (E.cons_std is not None) == (stds == "frozen_cached")
+        assert (E.points is not None) == (stds == "frozen_points")
     g = torch.Generator().manual_seed(0)
     xi = (0.01 * torch.randn(3, 6, generator=g, dtype=torch.float64)).requires_grad_()
     fn = lambda x: _edge_losses(x, T0, depth, 0.05 * depth, Kb, mask, E, [0, 1], 100.0, 1.0)  # noqa: E731
     assert torch.autograd.gradcheck(fn, (xi,), eps=1e-6, atol=1e-4)
+    if stds == "frozen_points":  # the same per-edge values as the dense flow maps
+        D = _Edges([(0, 2), (2, 1)], [(idx, f), None], H, W, torch.float64, "cpu")
+        D.freeze_stds(T0, depth, 0.05 * depth, Kb, mask, chunk=1, cache_mb=0.0)
+        dense = _edge_losses(xi, T0, depth, 0.05 * depth, Kb, mask, D, [0, 1], 100.0, 1.0)
+        torch.testing.assert_close(fn(xi), dense, rtol=1e-12, atol=1e-12)
 
 
 def test_cached_stds_give_the_same_optimisation(scene):
-    # The stds carried at the SfM poses, cached once or carried again at every evaluation: the same result.
+    # The stds carried at the SfM poses, cached once or carried again at every evaluation, and the sparse flow
+    # at its points or as dense maps: the same result.
     g = torch.Generator().manual_seed(2)
     xi = 0.01 * torch.randn(N, 6, generator=g, dtype=torch.float64)
     xi[0] = 0
@@ -113,8 +121,11 @@ def test_cached_stds_give_the_same_optimisation(scene):
     cached = optimize(scene, T_init, iterations=5)
     uncached = optimize(scene, T_init, iterations=5, std_cache_mb=0)
     free = optimize(scene, T_init, iterations=5, freeze_std=False)
+    dense_flow = optimize(scene, T_init, iterations=5, flow_at_points=False)  # flow maps at every pixel
     torch.testing.assert_close(cached.cam_from_world, uncached.cam_from_world, rtol=0, atol=1e-6)
     assert cached.history == pytest.approx(uncached.history, rel=1e-5)
+    torch.testing.assert_close(cached.cam_from_world, dense_flow.cam_from_world, rtol=0, atol=1e-6)
+    assert cached.history == pytest.approx(dense_flow.history, rel=1e-5)
     assert free.loss_before == pytest.approx(cached.loss_before, rel=1e-6)  # the same stds at the SfM poses
     assert (free.cam_from_world - cached.cam_from_world).abs().max() > 1e-5  # and not elsewhere
 

@@ -165,6 +165,25 @@ def test_ensure_dataset_reuses_and_bad_input(tmp_path):
         generate(tmp_path / "x", patients=1, frames=2, mesh=tmp_path / "nope.ply")
 
 
+def test_config_files_repeat_the_generators_defaults(monkeypatch):
+    """conf/phantom.yaml (the command line) and conf/data/phantom.yaml (training) state the generator's defaults."""
+    import yaml
+
+    from endorecon.phantom import __main__ as cli
+    from endorecon.phantom.generate import DEFAULT_PATIENTS, generator_defaults
+
+    d = generator_defaults()
+    assert d["patients"] == DEFAULT_PATIENTS
+    cli_conf = yaml.safe_load((ROOT / "conf" / "phantom.yaml").read_text())
+    assert cli_conf.pop("out") is None
+    assert cli_conf == d
+    train_conf = yaml.safe_load((ROOT / "conf" / "data" / "phantom.yaml").read_text())["phantom"]
+    assert train_conf == {k: d[k] for k in train_conf}
+    # without conf/ next to the package the command line falls back to the same values
+    monkeypatch.setattr(cli, "CONF", ROOT / "no_such_conf.yaml")
+    assert cli.parse_args(["out=x"]) == {"out": "x", **d}
+
+
 def test_cli_rejects_unknown_key(tmp_path):
     r = subprocess.run(
         [sys.executable, "-m", "endorecon.phantom", f"out={tmp_path}/o", "bogus=1"], cwd=ROOT, capture_output=True, text=True
