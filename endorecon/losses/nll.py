@@ -385,7 +385,7 @@ def sparse_flow_loss_points(
     R, t = cam_j_from_cam_i[:, :3, :3], cam_j_from_cam_i[:, :3, 3]
     uv_j, z_j = project(X_i @ R.transpose(1, 2) + t[:, None], K)
     ok = ok & (z_j > min_depth)
-    size = torch.tensor([W, H], dtype=X_i.dtype, device=X_i.device)
+    size = _image_size((B, 1, H, W), X_i).view(2)
     var = _safe(flow_std_ij.to(X_i.dtype), ok2, 1.0) ** 2 + flow_std_floor**2
     obs = _safe(flow_ij.to(X_i.dtype), ok2, 0.0) / size
     nll = gaussian_nll(obs, (uv_j - _safe(uv_i.to(X_i.dtype), ok2, 0.0)) / size, var, eps).sum(-1)

@@ -165,18 +165,15 @@ class _Edges:
                     if self.flows[k] is not None:
                         idx = self.flows[k][0]
                         self.flow_std[k] = fs[b][:, idx].T.contiguous()
-                        if at_points:
-                            # a point is usable where the dense loss would use its pixel (finite, positive depth)
-                            d = depth[ii[b], 0].flatten()[idx]
-                            ok = torch.isfinite(d) & (d > 1e-6) & torch.isfinite(std[ii[b], 0].flatten()[idx])
-                            points[k] = (X[b][:, idx].T, ok)
+                        if at_points:  # unusable points (non-finite depth or std) the loss itself leaves out
+                            points[k] = X[b][:, idx].T
         self.cons_std = torch.cat(cons) if cache_cons else None
         if at_points:
             self.points = self._gather_points(points)
 
     def _gather_points(self, points):
-        """Per-edge (points (M, 3), ok (M,)) -> padded (n_edges, M_max, .) tensors; padding is invalid."""
-        n, m_max = len(self.edges), max([1] + [len(p[1]) for p in points if p is not None])
+        """Per-edge points (M, 3) -> padded (n_edges, M_max, .) tensors; padding is invalid."""
+        n, m_max = len(self.edges), max([1] + [len(p) for p in points if p is not None])
         X = torch.ones(n, m_max, 3, dtype=self.dtype, device=self.device)
         uv = torch.zeros(n, m_max, 2, dtype=self.dtype, device=self.device)
         flow = torch.zeros_like(uv)
@@ -188,7 +185,7 @@ class _Edges:
                 continue
             idx, f = self.flows[k]
             M = len(idx)
-            X[k, :M], ok[k, :M] = p
+            X[k, :M], ok[k, :M] = p, True
             uv[k, :M], flow[k, :M], fstd[k, :M] = grid[idx], f, self.flow_std[k]
         return X, uv, flow, fstd, ok
 
