@@ -33,6 +33,50 @@ def _scalar(v):
         return None
 
 
+def _range_name(b: dict) -> str:
+    return f"{b['lo']:g}-{b['hi']:g}x" if b["hi"] is not None else f"over_{b['lo']:g}x"
+
+
+def held_out_report(metrics: dict, targets, it_dir: Path) -> list[tuple[int, str]]:
+    """The iteration's held-out results as log lines ``(level, text)``: one INFO summary (depth, mesh, flags),
+    the depth error by relative depth, and one WARNING naming each target (``bootstrap.targets``) it misses,
+    so that a run that falls short says so where it is watched, not only in ``metrics.json``."""
+    from endorecon.evaluation.depth_metrics import format_depth_ranges
+
+    de, ev = metrics.get("depth_evaluation") or {}, metrics.get("evaluation") or {}
+    head = f"{metrics.get('iteration')} of fold {metrics.get('fold')}, held-out patient {metrics.get('fold')}:"
+    parts = []
+    if de:
+        parts.append(f"depth AbsRel {de['abs_rel']:.3f}, δ<1.25 {de['a1']:.3f}, std-error Spearman "
+                     f"{de.get('std_error_spearman', float('nan')):.2f}")
+    if ev:
+        parts.append(f"mesh residual mean / median / p95 / max {ev['mean_mm']:.3f} / {ev['median_mm']:.3f} / "
+                     f"{ev['p95_mm']:.3f} / {ev['max_mm']:.3f} mm ({100 * ev.get('frac_below_1mm', float('nan')):.0f} % < 1 mm)")
+    parts.append(f"{metrics.get('n_flagged', 0)} frame(s) flagged over all sequences")
+    lines = [(logging.INFO, f"{head} " + "; ".join(parts))]
+    if de.get("by_relative_depth"):
+        lines.append((logging.INFO, "held-out depth, mean log error by depth / frame median (+ too far, - too near, "
+                                    "share of pixels): " + format_depth_ranges(de["by_relative_depth"])))
+    if not de and not ev:
+        return lines
+    checks = [("abs_rel", de.get("abs_rel"), "depth AbsRel", lambda v, t: v <= t, "<="),
+              ("std_spearman", de.get("std_error_spearman"), "std-error Spearman", lambda v, t: v > t, ">"),
+              ("mean_mm", ev.get("mean_mm"), "mesh mean residual (mm)", lambda v, t: v < t, "<"),
+              ("max_mm", ev.get("max_mm"), "mesh max residual (mm)", lambda v, t: v < t, "<")]
+    missed = []
+    for key, value, name, ok, op in checks:
+        t = (targets or {}).get(key)
+        if t is None or value is None:
+            continue
+        if not (np.isfinite(value) and ok(value, float(t))):
+            missed.append(f"{name} {value:.3f} (target {op} {float(t):g})")
+    if missed:
+        where = it_dir / "evaluation" / "residual_heatmap.png" if ev else it_dir / "metrics.json"
+        lines.append((logging.WARNING, f"held-out patient {metrics.get('fold')} misses: " + ", ".join(missed)
+                      + f"; see {where}"))
+    return lines
+
+
 class BootstrapCallback(L.Callback):
     def __init__(self, cfg, prepared, it_dir: Path, info):
         self.cfg = cfg
@@ -78,6 +122,11 @@ class BootstrapCallback(L.Callback):
                 shutil.copyfile(sdir / "mesh.ply", tmp)
             if cfg.bootstrap.evaluate:
                 evaluation = self._evaluate(prep.seq, sdir)
+        if depth_eval and depth_eval.get("by_relative_depth"):
+            from endorecon.evaluation.plots import save_depth_error_by_range
+
+            save_depth_error_by_range(depth_eval["by_relative_depth"], it_dir / "evaluation" / "depth_error_by_range.png",
+                                      f"held-out patient {cfg.fold}, {it_dir.name}: depth error by relative depth")
         self.metrics = dict(
             iteration=self.it_dir.name,
             fold=int(cfg.fold),
@@ -91,6 +140,8 @@ class BootstrapCallback(L.Callback):
         )
         self._log_tensorboard(trainer, summaries, evaluation)
         atomic_write_text(it_dir / "metrics.json", json.dumps(self.metrics, indent=2) + "\n")
+        for level, line in held_out_report(self.metrics, cfg.bootstrap.get("targets"), it_dir):
+            log.log(level, line)
 
     def _evaluate(self, seq, sdir: Path) -> dict | None:
         """The held-out mesh against the patient's CT (evaluation is the only reader of ground truth)."""
@@ -112,10 +163,14 @@ class BootstrapCallback(L.Callback):
             for k in ("mean_mm", "median_mm", "p95_mm", "max_mm"):
                 if k in evaluation:
                     exp.add_scalar(f"evaluation/{k}", evaluation[k], step)
-        for k, v in (self.metrics.get("depth_evaluation") or {}).items():
-            exp.add_scalar(f"evaluation/depth_{k}", v, step)
-        for k, v in (self.metrics.get("depth_evaluation_capped") or {}).items():
-            exp.add_scalar(f"evaluation/depth_capped_{k}", v, step)
+        for key, prefix in (("depth_evaluation", "depth_"), ("depth_evaluation_capped", "depth_capped_")):
+            for k, v in (self.metrics.get(key) or {}).items():
+                if k == "by_relative_depth":
+                    for b in v:
+                        if b["log_error"] is not None:
+                            exp.add_scalar(f"evaluation/{prefix}log_error/{_range_name(b)}", b["log_error"], step)
+                elif _scalar(v) is not None:
+                    exp.add_scalar(f"evaluation/{prefix}{k}", _scalar(v), step)
         try:
             import open3d as o3d
 

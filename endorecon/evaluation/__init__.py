@@ -1,7 +1,7 @@
 """Evaluation: registration of a reconstruction to the reference ("CT") surface, residuals in mm,
 residual pictures, and depth metrics against ground-truth depth."""
 
-from endorecon.evaluation.depth_metrics import depth_metrics, std_error_spearman
+from endorecon.evaluation.depth_metrics import depth_error_by_range, depth_metrics, format_depth_ranges, std_error_spearman
 from endorecon.evaluation.evaluate import evaluate_mesh, residual_stats
 from endorecon.evaluation.meshes import ReferenceSurface, load_mesh, sample_points
 from endorecon.evaluation.registration import (
@@ -16,6 +16,8 @@ from endorecon.evaluation.registration import (
 
 __all__ = [
     "depth_metrics",
+    "depth_error_by_range",
+    "format_depth_ranges",
     "std_error_spearman",
     "evaluate_mesh",
     "residual_stats",

@@ -13,6 +13,10 @@ import torch
 from scipy.stats import spearmanr
 
 METRIC_NAMES = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+# Bins of GT depth over the frame's median GT depth for :func:`depth_error_by_range`: the near walls
+# (often saturated by the light) and the far end of a passage (dark, few SfM points) are where
+# held-out depth goes wrong, and a frame-averaged AbsRel hides which end it is.
+RELATIVE_DEPTH_EDGES = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, float("inf"))
 
 
 def _as_frames(x, name: str) -> torch.Tensor:
@@ -28,6 +32,18 @@ def _as_frames(x, name: str) -> torch.Tensor:
     if t.dim() != 3:
         raise ValueError(f"{name} must be (N, H, W) or (B, 1, H, W), got {tuple(t.shape)}")
     return t if t.dtype == torch.bool else t.to(torch.float64)
+
+
+def _usable(pred, gt, valid):
+    """(N, H, W) float64 pred and gt, and the bool mask of pixels usable for metrics (valid, both > 0, finite)."""
+    p = _as_frames(pred, "pred")
+    g = _as_frames(gt, "gt")
+    if p.shape != g.shape:
+        raise ValueError(f"pred {tuple(p.shape)} and gt {tuple(g.shape)} differ in shape")
+    m = torch.ones_like(g, dtype=torch.bool) if valid is None else _as_frames(valid, "valid")
+    if m.shape != g.shape:
+        raise ValueError(f"valid {tuple(m.shape)} and gt {tuple(g.shape)} differ in shape")
+    return p, g, m.bool() & (g > 0) & (p > 0) & torch.isfinite(g) & torch.isfinite(p)
 
 
 def depth_metrics(pred, gt, valid=None, median_scaling: bool = True, cap: float | None = None) -> dict:
@@ -46,14 +62,7 @@ def depth_metrics(pred, gt, valid=None, median_scaling: bool = True, cap: float 
     Raises:
         ValueError: wrong shapes or no valid pixel at all.
     """
-    p = _as_frames(pred, "pred")
-    g = _as_frames(gt, "gt")
-    if p.shape != g.shape:
-        raise ValueError(f"pred {tuple(p.shape)} and gt {tuple(g.shape)} differ in shape")
-    m = torch.ones_like(g, dtype=torch.bool) if valid is None else _as_frames(valid, "valid")
-    if m.shape != g.shape:
-        raise ValueError(f"valid {tuple(m.shape)} and gt {tuple(g.shape)} differ in shape")
-    m = m.bool() & (g > 0) & (p > 0) & torch.isfinite(g) & torch.isfinite(p)
+    p, g, m = _usable(pred, gt, valid)
     if cap is not None:
         m &= g <= cap
     per_frame, scales, n_pix = [], [], 0
@@ -85,6 +94,58 @@ def depth_metrics(pred, gt, valid=None, median_scaling: bool = True, cap: float 
     out = {k: float(v) for k, v in zip(METRIC_NAMES, mean)}
     out.update(scale_median=float(np.median(scales)), n_frames=len(per_frame), n_pixels=n_pix)
     return out
+
+
+def depth_error_by_range(pred, gt, valid=None, edges=RELATIVE_DEPTH_EDGES, median_scaling: bool = True) -> list[dict]:
+    """Depth error by relative depth: which part of the depth range a prediction gets wrong, and which way.
+
+    Each frame's prediction is scaled by median(gt)/median(pred) over its valid pixels (as in
+    :func:`depth_metrics`); each valid pixel is binned by r = gt / median(gt of its frame).  Statistics are
+    over all pixels of a bin (pixel-weighted across frames, unlike :func:`depth_metrics`'s frame average).
+
+    Args:
+        pred, gt, valid: as in :func:`depth_metrics`.
+        edges: increasing bin edges of r (the last may be inf); a bin is [lo, hi).
+    Returns:
+        one dict per bin: {lo, hi (None for inf, so that the JSON stays standard), share (fraction of all valid pixels), n_pixels, log_error (mean signed
+        log(pred / gt): > 0 too far, < 0 too near), abs_rel}; log_error and abs_rel are None for an empty bin.
+    Raises:
+        ValueError: wrong shapes, edges not increasing, or no valid pixel at all.
+    """
+    edges = [float(e) for e in edges]
+    if len(edges) < 2 or any(b <= a for a, b in zip(edges[:-1], edges[1:])):
+        raise ValueError(f"edges must be increasing with at least two values, got {edges}")
+    p, g, m = _usable(pred, gt, valid)
+    rel, err = [], []
+    for pi, gi, mi in zip(p, g, m):
+        if not mi.any():
+            continue
+        pv, gv = pi[mi], gi[mi]
+        s = gv.median() / pv.median() if median_scaling else 1.0
+        rel.append(gv / gv.median())
+        err.append(torch.log(pv * s / gv))
+    if not rel:
+        raise ValueError("no valid pixel (gt > 0, pred > 0, inside the mask) in any frame")
+    r, e = torch.cat(rel), torch.cat(err)
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        k = (r >= lo) & (r < hi)
+        n = int(k.sum())
+        out.append(dict(lo=lo, hi=None if hi == float("inf") else hi, share=n / len(r), n_pixels=n,
+                        log_error=float(e[k].mean()) if n else None,
+                        abs_rel=float((e[k].exp() - 1).abs().mean()) if n else None))
+    return out
+
+
+def format_depth_ranges(bins: list[dict]) -> str:
+    """One line for a log: ``<0.5x +0.02 (20%) | 0.5-1x ...``, the signed mean log error per bin."""
+    parts = []
+    for b in bins:
+        lo, hi = b["lo"], b["hi"]
+        name = f"<{hi:g}x" if lo == 0 and hi is not None else (f">{lo:g}x" if hi is None else f"{lo:g}-{hi:g}x")
+        val = "n/a" if b["log_error"] is None else f"{b['log_error']:+.2f}"
+        parts.append(f"{name} {val} ({100 * b['share']:.0f}%)")
+    return " | ".join(parts)
 
 
 def std_error_spearman(std, abs_error, valid=None, max_samples: int = 200_000, seed: int = 0) -> float:

@@ -1,4 +1,5 @@
-"""Pictures of residuals: a heat-map of the registered mesh from a few viewpoints, and a histogram.
+"""Pictures of residuals: a heat-map of the registered mesh from a few viewpoints, and a histogram; and
+the held-out depth error by band of relative depth.
 
 Rendering is headless: an Open3D ``RaycastingScene`` casts one ray per pixel,
 the per-vertex residual is interpolated with the hit's barycentrics, and the
@@ -127,6 +128,32 @@ def save_residual_histogram(residual_mm: np.ndarray, path: str | Path, title: st
     ax.set_ylabel("points")
     ax.set_title(f"{title} (n = {len(r)}, max {r.max():.3f} mm)")
     ax.legend()
+    return _save(fig, path)
+
+
+def save_depth_error_by_range(bins: list[dict], path: str | Path, title: str = "depth error by relative depth") -> Path:
+    """PNG bar chart of :func:`~endorecon.evaluation.depth_metrics.depth_error_by_range`'s bins: the signed mean
+    log error per band (bars; + too far, − too near) and each band's share of the pixels (line, right axis)."""
+    from endorecon.evaluation.depth_metrics import format_depth_ranges
+
+    names = [part.split(" ")[0] for part in format_depth_ranges(bins).split(" | ")]
+    err = np.array([np.nan if b["log_error"] is None else b["log_error"] for b in bins])
+    x = np.arange(len(bins))
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.bar(x, np.nan_to_num(err), color=["C3" if e < 0 else "C0" for e in np.nan_to_num(err)])
+    for xi, e, b in zip(x, err, bins):
+        label = "n/a" if np.isnan(e) else f"{e:+.2f}\nAbsRel {b['abs_rel']:.2f}"
+        ax.annotate(label, (xi, 0 if np.isnan(e) else e), ha="center", va="bottom" if not e < 0 else "top", fontsize=7)
+    ax.axhline(0, color="k", lw=0.8)
+    ax.margins(y=0.2)  # room for the labels beyond the longest bars
+    ax.set_xticks(x, names)
+    ax.set_xlabel("GT depth / frame's median GT depth")
+    ax.set_ylabel("mean log(pred / GT)  (+ too far, − too near)")
+    share = ax.twinx()
+    share.plot(x, [100 * b["share"] for b in bins], "k.:", lw=1)
+    share.set_ylabel("share of pixels [%]")
+    share.set_ylim(bottom=0)
+    ax.set_title(title)
     return _save(fig, path)
 
 

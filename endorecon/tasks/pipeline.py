@@ -386,7 +386,9 @@ def evaluate_against_ct(data_root: Path, seq: Sequence, mesh_path: Path, cam_fro
 def evaluate_depth(data_root: Path, seq: Sequence, depth: torch.Tensor, std: torch.Tensor,
                    caps_mm: tuple[float | None, ...] = (None,)) -> list[dict]:
     """Network depth of a phantom sequence against its GT depth: the SCARED metric set with per-frame median
-    scaling, and the Spearman correlation of the predicted std with the actual error (both after scaling).
+    scaling, the Spearman correlation of the predicted std with the actual error (both after scaling), and
+    ``by_relative_depth``: the signed error per band of depth relative to the frame's median
+    (:func:`~endorecon.evaluation.depth_metrics.depth_error_by_range`).
 
     Args:
         seq: the sequence at the network's resolution (GT depth is area-averaged down to it).
@@ -399,7 +401,7 @@ def evaluate_depth(data_root: Path, seq: Sequence, depth: torch.Tensor, std: tor
     import torch.nn.functional as F
 
     from endorecon.data.dataset import load_ground_truth
-    from endorecon.evaluation.depth_metrics import depth_metrics, std_error_spearman
+    from endorecon.evaluation.depth_metrics import depth_error_by_range, depth_metrics, std_error_spearman
 
     gt = load_ground_truth(data_root, seq.patient, seq.name.split("/")[-1])
     g = torch.from_numpy(gt.depth_mm).float()[:, None]
@@ -421,6 +423,7 @@ def evaluate_depth(data_root: Path, seq: Sequence, depth: torch.Tensor, std: tor
                 errs[i] = (depth[i] * s - g_small[i]).abs()
                 stds[i] = std[i] * s
         out["std_error_spearman"] = std_error_spearman(stds, errs, mask)
+        out["by_relative_depth"] = depth_error_by_range(depth, g_small, mask)
         results.append(out)
     return results
 

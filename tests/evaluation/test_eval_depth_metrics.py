@@ -100,3 +100,45 @@ def test_std_error_spearman():
     assert np.isnan(std_error_spearman(torch.ones_like(err), err))
     with pytest.raises(ValueError, match="at least 3"):
         std_error_spearman(err, err, torch.zeros_like(valid))
+
+
+def test_depth_error_by_range_analytic():
+    """Pixels at known relative depths with known biases: each bin reports its own share, sign and size."""
+    from endorecon.evaluation import depth_error_by_range, format_depth_ranges
+
+    # One frame: 2 pixels at 0.25x, 3 at 1x (the median), 1 at 4x the median GT depth.
+    gt = torch.tensor([[[2.5, 2.5, 10.0, 10.0, 10.0, 40.0]]], dtype=torch.float64)
+    # near walls 20 % too far, the far end half as deep, the middle exact; the median (1x) sets the scale
+    pred = gt * torch.tensor([1.2, 1.2, 1.0, 1.0, 1.0, 0.5], dtype=torch.float64) * 7.0
+    bins = depth_error_by_range(pred, gt, edges=(0, 0.5, 1.5, 3, float("inf")))
+    assert [b["n_pixels"] for b in bins] == [2, 3, 0, 1]
+    assert bins[0]["share"] == pytest.approx(2 / 6)
+    assert bins[0]["log_error"] == pytest.approx(np.log(1.2)) and bins[0]["abs_rel"] == pytest.approx(0.2)
+    assert bins[1]["log_error"] == pytest.approx(0.0, abs=1e-12)
+    assert bins[2]["log_error"] is None and bins[2]["abs_rel"] is None
+    assert bins[3]["log_error"] == pytest.approx(np.log(0.5)) and bins[3]["abs_rel"] == pytest.approx(0.5)
+    assert bins[3]["hi"] is None  # inf is not standard JSON
+    line = format_depth_ranges(bins)
+    assert line.startswith("<0.5x +0.18 (33%)") and "1.5-3x n/a (0%)" in line and line.endswith(">3x -0.69 (17%)")
+    # a mask leaves pixels out; without scaling the 7x shows
+    valid = torch.tensor([[[True, True, True, True, True, False]]])
+    b = depth_error_by_range(pred, gt, valid, edges=(0, 0.5, 1.5, 3, float("inf")), median_scaling=False)
+    assert [x["n_pixels"] for x in b] == [2, 3, 0, 0] and b[1]["log_error"] == pytest.approx(np.log(7.0))
+    with pytest.raises(ValueError, match="increasing"):
+        depth_error_by_range(pred, gt, edges=(0, 1, 1))
+    with pytest.raises(ValueError, match="no valid pixel"):
+        depth_error_by_range(pred, gt, torch.zeros_like(valid))
+
+
+def test_depth_error_by_range_plot(tmp_path):
+    from endorecon.evaluation import depth_error_by_range
+    from endorecon.evaluation.plots import save_depth_error_by_range
+
+    gt = torch.tensor([[[2.5, 2.5, 10.0, 10.0, 10.0, 40.0]]], dtype=torch.float64)
+    pred = gt * torch.tensor([1.2, 1.2, 1.0, 1.0, 1.0, 0.5], dtype=torch.float64)
+    bins = depth_error_by_range(pred, gt)  # default bands, some empty
+    out = save_depth_error_by_range(bins, tmp_path / "sub" / "by_range.png")
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(out)
+    assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100 and img[..., :3].std() > 0.01

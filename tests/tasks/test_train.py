@@ -75,6 +75,29 @@ def test_two_iterations_end_to_end(debug_run):
     assert -1 <= de["std_error_spearman"] <= 1
     capped = m1["depth_evaluation_capped"]  # same metrics without GT deeper than bootstrap.depth_cap_mm
     assert 0 < capped["abs_rel"] < 0.5 and 0 < capped["n_pixels"] <= de["n_pixels"]
+    # ... and which end of the depth range the error is at: every valid pixel in one band
+    bins = de["by_relative_depth"]
+    assert sum(b["n_pixels"] for b in bins) == de["n_pixels"] and sum(b["share"] for b in bins) == pytest.approx(1)
+    assert all(b["log_error"] is None or np.isfinite(b["log_error"]) for b in bins) and bins[-1]["hi"] is None
+    assert (fold_dir / "iteration=1" / "evaluation" / "depth_error_by_range.png").is_file()
+
+
+@pytest.mark.slow
+def test_a_complete_fold_reports_its_held_out_results_again(debug_run, caplog):
+    """python train.py on a finished fold does no work but says again how the held-out patient did."""
+    import logging
+
+    from endorecon.tasks.train import run
+
+    fold_dir, mean_mm = debug_run
+    m1 = json.loads((fold_dir / "iteration=1" / "metrics.json").read_text())
+    with caplog.at_level(logging.INFO, logger="endorecon"):
+        assert run(train_cfg(fold_dir.parents[2], "fold=0", "iteration=1", "bootstrap.targets.max_mm=0.001")) == mean_mm
+    text = caplog.text
+    assert "all iterations up to 1 of fold 0 are complete" in text
+    assert f"AbsRel {m1['depth_evaluation']['abs_rel']:.3f}" in text and f"{m1['evaluation']['max_mm']:.3f} mm" in text
+    assert "by depth / frame median" in text
+    assert "held-out patient 0 misses:" in text and "(target < 0.001)" in text  # the debug mesh is not that good
 
 
 @pytest.mark.slow
@@ -192,6 +215,43 @@ def test_bad_depth_cap_is_a_clear_error_before_any_work(tmp_path, cap):
     with pytest.raises(InputError, match="depth_cap_mm"):
         run(cfg)
     assert not any(tmp_path.iterdir())  # nothing generated or trained
+
+
+@pytest.mark.parametrize("override", ["bootstrap.targets.max_mm=abc", "+bootstrap.targets.rmse=1"])
+def test_bad_target_is_a_clear_error_before_any_work(tmp_path, override):
+    from endorecon.tasks.train import run
+
+    cfg = _compose("train", ["debug=fast", f"paths.root_dir={tmp_path}", override])
+    with pytest.raises(InputError, match="bootstrap.targets"):
+        run(cfg)
+    assert not any(tmp_path.iterdir())
+
+
+def test_held_out_report_names_each_missed_target(tmp_path):
+    """The log lines an iteration ends with: the summary, the error by relative depth, one warning for misses."""
+    import logging
+
+    from endorecon.callbacks.bootstrap import held_out_report
+
+    bins = [dict(lo=0.0, hi=0.5, share=0.2, n_pixels=2, log_error=0.05, abs_rel=0.05),
+            dict(lo=0.5, hi=None, share=0.8, n_pixels=8, log_error=-0.43, abs_rel=0.35)]
+    metrics = dict(iteration="iteration=2", fold=1, n_flagged=3,
+                   depth_evaluation=dict(abs_rel=0.120, a1=0.836, std_error_spearman=0.65, by_relative_depth=bins),
+                   evaluation=dict(mean_mm=0.910, median_mm=0.608, p95_mm=2.822, max_mm=5.575, frac_below_1mm=0.69))
+    targets = dict(abs_rel=0.10, std_spearman=0.3, mean_mm=1.0, max_mm=1.5)
+    lines = held_out_report(metrics, targets, tmp_path)
+    assert [lvl for lvl, _ in lines] == [logging.INFO, logging.INFO, logging.WARNING]
+    assert "AbsRel 0.120" in lines[0][1] and "5.575 mm" in lines[0][1] and "3 frame(s) flagged" in lines[0][1]
+    assert "<0.5x +0.05 (20%) | >0.5x -0.43 (80%)" in lines[1][1]
+    warn = lines[2][1]
+    assert "depth AbsRel 0.120 (target <= 0.1)" in warn and "mesh max residual (mm) 5.575 (target < 1.5)" in warn
+    assert "Spearman" not in warn and "mean residual" not in warn and "residual_heatmap.png" in warn
+    # all met, or unchecked (null), or nothing evaluated: no warning
+    assert len(held_out_report(metrics, dict(targets, abs_rel=0.2, max_mm=None), tmp_path)) == 2
+    assert len(held_out_report(dict(metrics, depth_evaluation=None, evaluation=None), targets, tmp_path)) == 1
+    # a NaN never passes
+    nan = dict(metrics, evaluation=dict(metrics["evaluation"], mean_mm=float("nan")))
+    assert "mesh mean residual (mm) nan" in held_out_report(nan, targets, tmp_path)[-1][1]
 
 
 def test_cli_shows_composed_config():
