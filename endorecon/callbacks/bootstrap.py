@@ -34,7 +34,20 @@ def _scalar(v):
 
 
 def _range_name(b: dict) -> str:
+    """A TensorBoard tag for a depth band (no '<' / '>')."""
     return f"{b['lo']:g}-{b['hi']:g}x" if b["hi"] is not None else f"over_{b['lo']:g}x"
+
+
+# bootstrap.targets: key -> (what it checks, how a value passes against the target)
+TARGETS = {"abs_rel": ("depth AbsRel", "<="), "std_spearman": ("std-error Spearman", ">"),
+           "mean_mm": ("mesh mean residual (mm)", "<"), "max_mm": ("mesh max residual (mm)", "<")}
+_OPS = {"<=": lambda v, t: v <= t, "<": lambda v, t: v < t, ">": lambda v, t: v > t}
+
+
+def log_held_out_report(metrics: dict, targets, it_dir: Path) -> None:
+    """Log :func:`held_out_report`'s lines (after an iteration, and for a fold found complete)."""
+    for level, line in held_out_report(metrics, targets, it_dir):
+        log.log(level, line)
 
 
 def held_out_report(metrics: dict, targets, it_dir: Path) -> list[tuple[int, str]]:
@@ -59,16 +72,14 @@ def held_out_report(metrics: dict, targets, it_dir: Path) -> list[tuple[int, str
                                     "share of pixels): " + format_depth_ranges(de["by_relative_depth"])))
     if not de and not ev:
         return lines
-    checks = [("abs_rel", de.get("abs_rel"), "depth AbsRel", lambda v, t: v <= t, "<="),
-              ("std_spearman", de.get("std_error_spearman"), "std-error Spearman", lambda v, t: v > t, ">"),
-              ("mean_mm", ev.get("mean_mm"), "mesh mean residual (mm)", lambda v, t: v < t, "<"),
-              ("max_mm", ev.get("max_mm"), "mesh max residual (mm)", lambda v, t: v < t, "<")]
+    values = {"abs_rel": de.get("abs_rel"), "std_spearman": de.get("std_error_spearman"),
+              "mean_mm": ev.get("mean_mm"), "max_mm": ev.get("max_mm")}
     missed = []
-    for key, value, name, ok, op in checks:
-        t = (targets or {}).get(key)
+    for key, (name, op) in TARGETS.items():
+        t, value = (targets or {}).get(key), values[key]
         if t is None or value is None:
             continue
-        if not (np.isfinite(value) and ok(value, float(t))):
+        if not (np.isfinite(value) and _OPS[op](value, float(t))):
             missed.append(f"{name} {value:.3f} (target {op} {float(t):g})")
     if missed:
         where = it_dir / "evaluation" / "residual_heatmap.png" if ev else it_dir / "metrics.json"
@@ -140,8 +151,7 @@ class BootstrapCallback(L.Callback):
         )
         self._log_tensorboard(trainer, summaries, evaluation)
         atomic_write_text(it_dir / "metrics.json", json.dumps(self.metrics, indent=2) + "\n")
-        for level, line in held_out_report(self.metrics, cfg.bootstrap.get("targets"), it_dir):
-            log.log(level, line)
+        log_held_out_report(self.metrics, cfg.bootstrap.get("targets"), it_dir)
 
     def _evaluate(self, seq, sdir: Path) -> dict | None:
         """The held-out mesh against the patient's CT (evaluation is the only reader of ground truth)."""

@@ -46,6 +46,16 @@ def _usable(pred, gt, valid):
     return p, g, m.bool() & (g > 0) & (p > 0) & torch.isfinite(g) & torch.isfinite(p)
 
 
+def _scaled_frames(p, g, m, median_scaling: bool):
+    """Per frame with usable pixels: (scaled pred, gt, scale) over those pixels; scale = median(gt)/median(pred)."""
+    for pi, gi, mi in zip(p, g, m):
+        if not mi.any():
+            continue
+        pv, gv = pi[mi], gi[mi]
+        s = float(gv.median() / pv.median()) if median_scaling else 1.0
+        yield pv * s, gv, s
+
+
 def depth_metrics(pred, gt, valid=None, median_scaling: bool = True, cap: float | None = None) -> dict:
     """SCARED/KITTI depth metrics averaged over frames.
 
@@ -66,12 +76,7 @@ def depth_metrics(pred, gt, valid=None, median_scaling: bool = True, cap: float 
     if cap is not None:
         m &= g <= cap
     per_frame, scales, n_pix = [], [], 0
-    for pi, gi, mi in zip(p, g, m):
-        if not mi.any():
-            continue
-        pv, gv = pi[mi], gi[mi]
-        s = float(gv.median() / pv.median()) if median_scaling else 1.0
-        pv = pv * s
+    for pv, gv, s in _scaled_frames(p, g, m, median_scaling):
         if cap is not None:
             pv = pv.clamp(max=cap)
         ratio = torch.maximum(gv / pv, pv / gv)
@@ -87,7 +92,7 @@ def depth_metrics(pred, gt, valid=None, median_scaling: bool = True, cap: float 
             ]
         )
         scales.append(s)
-        n_pix += int(mi.sum())
+        n_pix += len(gv)
     if not per_frame:
         raise ValueError("no valid pixel (gt > 0, pred > 0, inside the mask and the cap) in any frame")
     mean = torch.tensor(per_frame, dtype=torch.float64).mean(0)
@@ -117,13 +122,9 @@ def depth_error_by_range(pred, gt, valid=None, edges=RELATIVE_DEPTH_EDGES, media
         raise ValueError(f"edges must be increasing with at least two values, got {edges}")
     p, g, m = _usable(pred, gt, valid)
     rel, err = [], []
-    for pi, gi, mi in zip(p, g, m):
-        if not mi.any():
-            continue
-        pv, gv = pi[mi], gi[mi]
-        s = gv.median() / pv.median() if median_scaling else 1.0
+    for pv, gv, _ in _scaled_frames(p, g, m, median_scaling):
         rel.append(gv / gv.median())
-        err.append(torch.log(pv * s / gv))
+        err.append(torch.log(pv / gv))
     if not rel:
         raise ValueError("no valid pixel (gt > 0, pred > 0, inside the mask) in any frame")
     r, e = torch.cat(rel), torch.cat(err)
@@ -137,14 +138,18 @@ def depth_error_by_range(pred, gt, valid=None, edges=RELATIVE_DEPTH_EDGES, media
     return out
 
 
+def range_label(b: dict) -> str:
+    """A bin of :func:`depth_error_by_range` as text: ``<0.5x``, ``1-1.5x``, ``>3x``."""
+    lo, hi = b["lo"], b["hi"]
+    return f"<{hi:g}x" if lo == 0 and hi is not None else (f">{lo:g}x" if hi is None else f"{lo:g}-{hi:g}x")
+
+
 def format_depth_ranges(bins: list[dict]) -> str:
     """One line for a log: ``<0.5x +0.02 (20%) | 0.5-1x ...``, the signed mean log error per bin."""
     parts = []
     for b in bins:
-        lo, hi = b["lo"], b["hi"]
-        name = f"<{hi:g}x" if lo == 0 and hi is not None else (f">{lo:g}x" if hi is None else f"{lo:g}-{hi:g}x")
         val = "n/a" if b["log_error"] is None else f"{b['log_error']:+.2f}"
-        parts.append(f"{name} {val} ({100 * b['share']:.0f}%)")
+        parts.append(f"{range_label(b)} {val} ({100 * b['share']:.0f}%)")
     return " | ".join(parts)
 
 

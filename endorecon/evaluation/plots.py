@@ -134,9 +134,9 @@ def save_residual_histogram(residual_mm: np.ndarray, path: str | Path, title: st
 def save_depth_error_by_range(bins: list[dict], path: str | Path, title: str = "depth error by relative depth") -> Path:
     """PNG bar chart of :func:`~endorecon.evaluation.depth_metrics.depth_error_by_range`'s bins: the signed mean
     log error per band (bars; + too far, − too near) and each band's share of the pixels (line, right axis)."""
-    from endorecon.evaluation.depth_metrics import format_depth_ranges
+    from endorecon.evaluation.depth_metrics import range_label
 
-    names = [part.split(" ")[0] for part in format_depth_ranges(bins).split(" | ")]
+    names = [range_label(b) for b in bins]
     err = np.array([np.nan if b["log_error"] is None else b["log_error"] for b in bins])
     x = np.arange(len(bins))
     fig, ax = plt.subplots(figsize=(6, 4))

@@ -107,8 +107,10 @@ def run(cfg: DictConfig) -> float | None:
     if cap is not None and not (isinstance(cap, (int, float)) and not isinstance(cap, bool) and cap > 0):
         raise InputError(f"bootstrap.depth_cap_mm must be a positive depth in mm or null, got {cap!r}",
                          fix="pass bootstrap.depth_cap_mm=30 (or null for uncapped metrics only)")
+    from endorecon.callbacks.bootstrap import TARGETS, log_held_out_report
+
     targets = cfg.bootstrap.get("targets") or {}
-    known = ("abs_rel", "std_spearman", "mean_mm", "max_mm")
+    known = tuple(TARGETS)
     for k, v in dict(targets).items():
         if k not in known or not (v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))):
             raise InputError(f"bootstrap.targets.{k}={v!r}: the targets are {', '.join(known)}, each a number or null",
@@ -130,12 +132,9 @@ def run(cfg: DictConfig) -> float | None:
     for it in todo:
         metrics = run_iteration(cfg, it, sfm_seqs, info)
     if metrics is None:
-        from endorecon.callbacks.bootstrap import held_out_report
-
         it_dir = iteration_dir(cfg, int(cfg.iteration))
         metrics = read_json(it_dir / "metrics.json", f"delete {it_dir} so that the iteration is made again")
-        for level, line in held_out_report(metrics, cfg.bootstrap.get("targets"), it_dir):
-            log.log(level, line)
+        log_held_out_report(metrics, cfg.bootstrap.get("targets"), it_dir)
     ev = metrics.get("evaluation") or {}
     return ev.get("mean_mm")
 
