@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from omegaconf import OmegaConf
 
 from endorecon.utils.errors import InputError
 
@@ -279,6 +280,10 @@ def test_every_config_group_composes():
         assert cfg.fusion.name in ("adaptive", "plain")
     cfg = _compose("train", ["experiment=paper"])
     assert cfg.bootstrap.epochs_per_iteration == 20 and cfg.data.height == 256 and cfg.iteration == 2
+    # experiment=cpu spells the default schedule out: it must not drift from train.yaml's defaults
+    default, cpu = _compose("train", []), _compose("train", ["experiment=cpu"])
+    for key in ("iteration", "bootstrap.epochs_per_iteration", "data.height", "data.width", "trainer.max_epochs"):
+        assert OmegaConf.select(cpu, key) == OmegaConf.select(default, key), key
 
 
 def _four_frame_sequence(tmp_path, rot_deg: float = 0.0, seed: int = 0):
