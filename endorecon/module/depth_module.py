@@ -34,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 from endorecon.geometry import invert_pose, warp_depth
 from endorecon.losses import dense_simulation_loss, depth_consistency_loss, sparse_depth_loss, sparse_flow_loss
 from endorecon.module.visuals import pair_panel
-from endorecon.networks.scaling import check_scale_mode, scale_depth
+from endorecon.networks.scaling import check_scale_mode, scale_depth, scale_depth_locally
 
 BATCH_KEYS = (
     "image_i", "image_j",  # (B,3,H,W) float [0,1]
@@ -67,6 +67,20 @@ def _plain(cfg: Any) -> dict:
     return dict(cfg or {})
 
 
+def _local_scaling(cfg: Mapping | None) -> dict | None:
+    """``model.local_scaling`` checked: None (off) or dict(sigma_fraction > 0, prior > 0)."""
+    if cfg is None:
+        return None
+    cfg = dict(cfg)
+    unknown = set(cfg) - {"sigma_fraction", "prior"}
+    if unknown or not {"sigma_fraction", "prior"} <= set(cfg):
+        raise ValueError(f"model.local_scaling needs exactly sigma_fraction and prior (or null), got {sorted(cfg)}")
+    out = {k: float(cfg[k]) for k in ("sigma_fraction", "prior")}
+    if not (out["sigma_fraction"] > 0 and out["prior"] > 0):
+        raise ValueError(f"model.local_scaling.sigma_fraction and prior must be > 0, got {out}")
+    return out
+
+
 def _cat(batch: Mapping, a: str, b: str) -> torch.Tensor:
     return torch.cat([batch[a], batch[b]], 0)
 
@@ -81,7 +95,10 @@ class DepthModule(L.LightningModule):
             trainer if not given), ``scheduler_interval`` ("step"/"epoch"),
             ``log_images_every_n_steps`` (0 = never), ``depth_scaling`` (the Depth Scaling
             Layer's estimator, :data:`endorecon.networks.scaling.SCALE_MODES`; absent in
-            checkpoints made before it existed: ``"ratio_of_sums"``, what those were trained with).
+            checkpoints made before it existed: ``"ratio_of_sums"``, what those were trained with),
+            ``local_scaling`` (null, or ``sigma_fraction`` of the image width and ``prior``: the
+            inference-only local scaling of :func:`endorecon.networks.scaling.scale_depth_locally`
+            in :meth:`predict`; absent in older checkpoints: off).
         loss: ``cfg.loss``: weights ``sparse_depth``, ``depth_consistency``, ``sparse_flow``,
             ``dense_simulation``; ``eps``; ``warmup_epochs``; ``flow_std_floor``.
     """
@@ -102,6 +119,7 @@ class DepthModule(L.LightningModule):
         self.flow_std_floor = float(loss["flow_std_floor"])
         # checked here, not at the first batch: a typo fails before any data is loaded
         self.scale_mode = check_scale_mode(str(model.get("depth_scaling", "ratio_of_sums")))
+        self.local_scaling = _local_scaling(model.get("local_scaling"))
         self.log_images_every_n_steps = int(model.get("log_images_every_n_steps", 0))
         self.skipped_batches = 0
 
@@ -123,7 +141,8 @@ class DepthModule(L.LightningModule):
         Args:
             images: (B,3,H,W) in [0,1].  mask: (B,1,H,W) bool.
             sparse_depth, sparse_valid: optional (B,1,H,W); if given, the output is
-                scaled to the SfM scale by the Depth Scaling Layer.
+                scaled to the SfM scale by the Depth Scaling Layer, then locally if
+                ``model.local_scaling`` is set.
         Returns:
             depth, std: (B,1,H,W).
         """
@@ -135,6 +154,10 @@ class DepthModule(L.LightningModule):
                 if sparse_valid is None:
                     sparse_valid = sparse_depth > 0
                 depth, std, _, _ = scale_depth(depth, std, sparse_depth, sparse_valid, self.eps, self.scale_mode)
+                if self.local_scaling is not None:
+                    sigma_px = self.local_scaling["sigma_fraction"] * depth.shape[-1]
+                    depth, std, _ = scale_depth_locally(depth, std, sparse_depth, sparse_valid, sigma_px,
+                                                        self.local_scaling["prior"], self.eps)
         finally:
             self.train(was_training)
         return depth, std

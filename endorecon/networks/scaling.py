@@ -15,12 +15,27 @@ depth.  The scale is differentiable w.r.t. the prediction, as in the paper (the
 network learns the shape; the scale is not a free output).  Frames without a
 valid sparse point keep scale 1 and are reported in ``has_sparse`` (their loss
 terms then have nothing to be compared with in SfM units).
+
+Local scaling (inference only, :func:`scale_depth_locally`; a departure from the paper,
+whose layer has one scale per frame): after the frame scale, the log ratio
+res_p = log sparse(p) − log depth(p) of each valid sparse point p is spread over the
+image with a Gaussian g(x) = exp(−|x|²/(2σ²)) (peak 1, cut at 3σ) into a field
+
+    field(x) = Σ_p g(x − p) res_p / (Σ_p g(x − p) + prior),
+
+and depth and std are multiplied by exp(field).  Near points the frame's own SfM
+depth corrects the network's shape (on the phantom, far walls that the network
+predicts too near, README); far from every point field → 0, i.e. the frame scale
+holds; ``prior`` is how many points' worth of weight that pull towards 0 has.
 """
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from endorecon.geometry._checks import check_shape
 
@@ -94,6 +109,71 @@ def scale_depth(
     scale, has = depth_scale(depth, sparse_depth, sparse_valid, eps, mode)
     s = scale.view(-1, 1, 1, 1)
     return depth * s, std * s, scale, has
+
+
+def _gaussian_sum(x: torch.Tensor, sigma_px: float) -> torch.Tensor:
+    """Σ over pixels q of x(q) exp(−|p − q|²/(2σ²)), zero outside the image, cut at 3σ.  x: (B,1,H,W)."""
+    r = max(1, math.ceil(3.0 * sigma_px))
+    t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
+    g = torch.exp(-(t**2) / (2.0 * sigma_px**2))
+    x = F.conv2d(x, g.view(1, 1, 1, -1), padding=(0, r))  # separable: rows, then columns
+    return F.conv2d(x, g.view(1, 1, -1, 1), padding=(r, 0))
+
+
+def local_log_scale(
+    depth: torch.Tensor,
+    sparse_depth: torch.Tensor,
+    sparse_valid: torch.Tensor,
+    sigma_px: float,
+    prior: float,
+    eps: float = 1e-8,
+) -> torch.Tensor:
+    """The log-scale field of the local scaling (module docstring).
+
+    Args:
+        depth: (B, 1, H, W) depth, already at the frame scale (> 0).
+        sparse_depth: (B, 1, H, W) SfM depth (ignored where not valid; may hold NaN there).
+        sparse_valid: (B, 1, H, W) bool.
+        sigma_px: Gaussian σ in pixels (> 0).  prior: weight of field 0 (> 0).
+    Returns:
+        field: (B, 1, H, W); 0 on frames without a valid point.
+    """
+    B, _, H, W = check_shape(depth, "depth", (None, 1, None, None))
+    check_shape(sparse_depth, "sparse_depth", (B, 1, H, W))
+    check_shape(sparse_valid, "sparse_valid", (B, 1, H, W))
+    if not sigma_px > 0 or not prior > 0:
+        raise ValueError(f"local scaling needs sigma_px > 0 and prior > 0, got {sigma_px}, {prior} "
+                         "(model.local_scaling.sigma_fraction / prior)")
+    valid = sparse_valid.bool() & torch.isfinite(sparse_depth) & (sparse_depth > 0)
+    valid = valid & torch.isfinite(depth) & (depth > eps)
+    one = torch.ones((), dtype=depth.dtype, device=depth.device)
+    res = torch.where(valid, torch.log(torch.where(valid, sparse_depth, one)) - torch.log(torch.where(valid, depth, one)),
+                      torch.zeros((), dtype=depth.dtype, device=depth.device))
+    return _gaussian_sum(res, sigma_px) / (_gaussian_sum(valid.to(depth.dtype), sigma_px) + prior)
+
+
+def scale_depth_locally(
+    depth: torch.Tensor,
+    std: torch.Tensor,
+    sparse_depth: torch.Tensor,
+    sparse_valid: torch.Tensor,
+    sigma_px: float,
+    prior: float,
+    eps: float = 1e-8,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Local scaling of frame-scaled depth and std by their frame's sparse points (module docstring).
+
+    Args:
+        depth, std: (B, 1, H, W), e.g. the output of :func:`scale_depth`.
+        sparse_depth: (B, 1, H, W); sparse_valid: (B, 1, H, W) bool.
+        sigma_px, prior: see :func:`local_log_scale`.
+    Returns:
+        depth_scaled, std_scaled: (B, 1, H, W).  field: (B, 1, H, W) the log scale applied.
+    """
+    check_shape(std, "std", tuple(depth.shape))
+    field = local_log_scale(depth, sparse_depth, sparse_valid, sigma_px, prior, eps)
+    f = torch.exp(field)
+    return depth * f, std * f, field
 
 
 class DepthScalingLayer(nn.Module):

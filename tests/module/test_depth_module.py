@@ -12,7 +12,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from endorecon.module import DepthModule
-from endorecon.networks import FCDenseNet
+from endorecon.networks import FCDenseNet, scale_depth, scale_depth_locally
 
 H, W = 64, 80
 TINY_NET = {
@@ -309,3 +309,34 @@ def test_old_checkpoints_keep_the_ratio_of_sums():
     assert DepthModule(cfg).scale_mode == "ratio_of_sums"
     with pytest.raises(ValueError, match="depth_scaling"):
         DepthModule(_model_cfg(depth_scaling="median"))
+
+
+def test_local_scaling_in_predict_only_and_kept_in_the_checkpoint(tmp_path):
+    torch.manual_seed(0)
+    ls = {"sigma_fraction": 0.1, "prior": 0.5}
+    module = DepthModule(_model_cfg(depth_scaling="log_mean", local_scaling=ls), {"warmup_epochs": 0})
+    batch = make_batch()
+    trainer = _trainer(tmp_path, 1)
+    trainer.fit(module, DataLoader([batch], batch_size=None))
+    trainer.save_checkpoint(tmp_path / "m.ckpt")
+    loaded = DepthModule.load_from_checkpoint(tmp_path / "m.ckpt")
+    assert loaded.local_scaling == ls
+    img, mask, sd, sv = batch["image_i"], batch["mask_i"], batch["sparse_depth_i"], batch["sparse_valid_i"]
+    d, s = loaded.predict(img, mask, sd, sv)
+    with torch.no_grad():
+        d0, s0 = loaded.eval()(img, mask)
+    d1, s1, _, _ = scale_depth(d0, s0, sd, sv, mode="log_mean")
+    d2, s2, field = scale_depth_locally(d1, s1, sd, sv, 0.1 * img.shape[-1], 0.5)
+    torch.testing.assert_close(d, d2)
+    torch.testing.assert_close(s, s2)
+    assert field.abs().max() > 1e-3  # the plane's points do move the depth here
+    # the losses keep the paper's one scale per frame
+    loaded.local_scaling = None
+    out_off = loaded.compute_losses(batch)
+    loaded.local_scaling = ls
+    out_on = loaded.compute_losses(batch)
+    torch.testing.assert_close(out_on["depth"], out_off["depth"])
+    assert DepthModule(_model_cfg()).local_scaling is None  # checkpoints made before it: off
+    for bad in ({"sigma_fraction": 0.1}, {"sigma_fraction": 0.0, "prior": 0.5}, {"sigma": 1, "prior": 1}):
+        with pytest.raises(ValueError, match="local_scaling"):
+            DepthModule(_model_cfg(local_scaling=bad))

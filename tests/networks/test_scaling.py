@@ -1,9 +1,12 @@
-"""Depth Scaling Layer: analytic scale, frames without points, gradcheck."""
+"""Depth Scaling Layer and local scaling: analytic scale and field, frames without points, gradcheck."""
+
+import math
 
 import pytest
 import torch
 
-from endorecon.networks import DepthScalingLayer, depth_scale, scale_depth
+from endorecon.networks import (DepthScalingLayer, depth_scale, local_log_scale, scale_depth,
+                                scale_depth_locally)
 
 
 def test_analytic_scale_recovered():
@@ -77,3 +80,78 @@ def test_unknown_mode_is_an_error():
     depth = torch.ones(1, 1, 2, 2)
     with pytest.raises(ValueError, match="model.depth_scaling"):
         DepthScalingLayer(mode="median")(depth, depth, depth, depth > 0)
+
+
+# ------------------------------------------------------------------ local scaling (inference only)
+def _gauss(t, sigma):
+    return math.exp(-(t**2) / (2 * sigma**2))
+
+
+def test_local_field_of_one_point_is_the_weighted_log_ratio():
+    sigma, prior = 2.0, 0.5
+    depth = torch.full((1, 1, 21, 25), 2.0, dtype=torch.float64)
+    sparse = torch.full_like(depth, float("nan"))
+    valid = torch.zeros_like(depth, dtype=torch.bool)
+    sparse[0, 0, 10, 12], valid[0, 0, 10, 12] = 6.0, True  # log ratio log 3
+    field = local_log_scale(depth, sparse, valid, sigma, prior)
+    for dy, dx in [(0, 0), (1, 0), (2, 3), (-4, 1)]:
+        g = _gauss(math.hypot(dy, dx), sigma)
+        assert field[0, 0, 10 + dy, 12 + dx].item() == pytest.approx(g * math.log(3) / (g + prior), rel=1e-12)
+    assert field[0, 0, 10, 12 + 7].item() == 0.0  # beyond 3 sigma: the frame scale holds exactly
+    assert field[0, 0, 0, 0].item() == 0.0
+
+
+def test_local_field_inside_a_dense_constant_ratio():
+    """Every pixel a point with ratio r: inside (3σ from the border) field = log r · G / (G + prior), G = (Σ_t g(t))²."""
+    sigma, prior, r = 1.5, 2.0, 0.7
+    depth = torch.rand(1, 1, 20, 20, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) + 1.0
+    sparse = depth * r
+    field = local_log_scale(depth, sparse, torch.ones_like(depth, dtype=torch.bool), sigma, prior)
+    G = sum(_gauss(t, sigma) for t in range(-5, 6)) ** 2  # the kernel is cut at ceil(3 sigma) = 5
+    torch.testing.assert_close(field[0, 0, 5:15, 5:15], torch.full((10, 10), math.log(r) * G / (G + prior),
+                                                                    dtype=torch.float64))
+    corner = field[0, 0, 0, 0].item()  # at the border fewer points: pulled harder towards the frame scale
+    assert math.log(r) < corner < 0 and abs(corner) < abs(field[0, 0, 10, 10].item())
+
+
+def test_local_scaling_depth_std_and_frames_without_points():
+    g = torch.Generator().manual_seed(2)
+    depth = torch.rand(2, 1, 12, 16, generator=g) + 0.5
+    std = torch.rand(2, 1, 12, 16, generator=g) * 0.1 + 0.01
+    sparse = torch.rand(2, 1, 12, 16, generator=g) + 0.5
+    valid = torch.rand(2, 1, 12, 16, generator=g) < 0.1
+    valid[1] = False  # frame 1: no point, unchanged
+    valid[0, 0, 0, 0] = True
+    d, s, field = scale_depth_locally(depth, std, sparse, valid, sigma_px=2.0, prior=0.5)
+    assert torch.equal(d[1], depth[1]) and torch.equal(s[1], std[1]) and (field[1] == 0).all()
+    torch.testing.assert_close(d / depth, torch.exp(field))
+    torch.testing.assert_close(s / std, torch.exp(field))  # std stays relative to the depth
+    # points whose SfM depth is NaN or not positive, or whose prediction is not positive, are left out
+    ref = local_log_scale(depth, sparse, valid, 2.0, 0.5)
+    sparse2, valid2, depth2 = sparse.clone(), valid.clone(), depth.clone()
+    for (y, x), sd, dd in [((5, 5), float("nan"), 1.0), ((6, 6), -1.0, 1.0), ((7, 7), 2.0, 0.0)]:
+        assert not valid[0, 0, y, x]
+        sparse2[0, 0, y, x], valid2[0, 0, y, x], depth2[0, 0, y, x] = sd, True, dd
+    torch.testing.assert_close(local_log_scale(depth2, sparse2, valid2, 2.0, 0.5), ref)
+
+
+def test_local_scaling_gradcheck():
+    g = torch.Generator().manual_seed(3)
+    depth = (torch.rand(2, 1, 6, 7, generator=g, dtype=torch.float64) + 0.5).requires_grad_()
+    std = (torch.rand(2, 1, 6, 7, generator=g, dtype=torch.float64) + 0.1).requires_grad_()
+    sparse = (torch.rand(2, 1, 6, 7, generator=g, dtype=torch.float64) + 1).requires_grad_()
+    valid = torch.rand(2, 1, 6, 7, generator=g) < 0.3
+    valid[:, 0, 0, 0] = True
+    fn = lambda d, s, sp: scale_depth_locally(d, s, sp, valid, 1.2, 0.5)[:2]  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (depth, std, sparse))
+
+
+def test_local_scaling_checks_its_arguments():
+    depth = torch.ones(1, 1, 4, 4)
+    valid = torch.ones_like(depth, dtype=torch.bool)
+    with pytest.raises(ValueError, match="sigma_px > 0 and prior > 0"):
+        local_log_scale(depth, depth, valid, 0.0, 0.5)
+    with pytest.raises(ValueError, match="sigma_px > 0 and prior > 0"):
+        local_log_scale(depth, depth, valid, 2.0, 0.0)
+    with pytest.raises(ValueError, match="sparse_depth"):
+        local_log_scale(depth, torch.ones(1, 1, 4, 5), valid, 2.0, 0.5)

@@ -1,0 +1,68 @@
+"""Benchmark: the cost of inference-time local scaling against the network forward it follows.
+
+``DepthModule.predict`` (network forward + frame scale) is timed with and without
+``model.local_scaling`` on the same random frames and sparse points (~1 % of the
+pixels, as the phantom's SfM gives), at 128x160 (CPU model) and 256x320
+(FC-DenseNet-57), interleaved, best of N.  Prints ms per batch and the ratio.
+
+    .venv/bin/python benchmarks/local_scaling.py
+    .venv/bin/python benchmarks/local_scaling.py --batch 8 --repeats 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from hydra import compose, initialize_config_dir  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from endorecon.module import DepthModule  # noqa: E402
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+def _seconds(fn) -> float:
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args()
+    torch.manual_seed(0)
+    for model, (H, W) in (("fcdensenet_cpu", (128, 160)), ("fcdensenet57", (256, 320))):
+        with initialize_config_dir(config_dir=str(CONF), version_base=None):
+            cfg = compose("train", overrides=[f"model={model}"])
+        module = DepthModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.loss).eval()
+        ls = module.local_scaling
+        B = args.batch
+        img = torch.rand(B, 3, H, W)
+        mask = torch.ones(B, 1, H, W, dtype=torch.bool)
+        valid = torch.rand(B, 1, H, W) < 0.01
+        sparse = torch.where(valid, torch.rand(B, 1, H, W) + 0.5, torch.zeros(()))
+        times = {"frame scale only": [], "with local scaling": []}
+        with torch.no_grad():
+            module.predict(img, mask, sparse, valid)  # warm-up (allocator, oneDNN kernels)
+            for _ in range(args.repeats):  # interleaved: both see the same machine load
+                module.local_scaling = None
+                times["frame scale only"].append(_seconds(lambda: module.predict(img, mask, sparse, valid)))
+                module.local_scaling = ls
+                times["with local scaling"].append(_seconds(lambda: module.predict(img, mask, sparse, valid)))
+        a, b = min(times["frame scale only"]), min(times["with local scaling"])
+        sigma = ls["sigma_fraction"] * W
+        print(f"{model} {H}x{W}, batch {B}, sigma {sigma:.0f} px: predict {1e3 * a:.1f} ms, "
+              f"with local scaling {1e3 * b:.1f} ms, ratio {b / a:.3f} (best of {args.repeats})")
+
+
+if __name__ == "__main__":
+    main()
