@@ -113,8 +113,11 @@ def test_last_checkpoint_is_the_network_the_iteration_evaluated(debug_run):
     cfg = train_cfg(fold_dir.parents[2], "fold=0", "iteration=1")
     info = pipeline.load_sequences(cfg)
     sfm = pipeline.run_sfm(cfg, info.sequences, info.root)  # cached by the run
-    prep = [p for p in prepare_sequences(cfg, sfm, None) if p.seq.patient == 0][0]
     for it in (0, 1):
+        # the iteration's own inputs: poses refined by the previous one move the sparse depth maps, and the
+        # local scaling (unlike a per-frame scale, which the median scaling of the metrics cancels) sees that
+        prev = fold_dir / f"iteration={it - 1}" if it else None
+        prep = [p for p in prepare_sequences(cfg, sfm, prev) if p.seq.patient == 0][0]
         module, _ = load_module(fold_dir / f"iteration={it}" / "checkpoints" / "last.ckpt")
         depth, std, _ = pipeline.infer_depth(module, prep.seq, prep.cache)
         got = pipeline.evaluate_depth(info.root, prep.seq, depth, std)[0]
