@@ -43,7 +43,9 @@ def main() -> None:
     for model, (H, W) in (("fcdensenet_cpu", (128, 160)), ("fcdensenet57", (256, 320))):
         with initialize_config_dir(config_dir=str(CONF), version_base=None):
             cfg = compose("train", overrides=[f"model={model}"])
-        module = DepthModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.loss).eval()
+        model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
+        model_cfg["local_scaling"]["enabled"] = True  # the configured sigma and prior, whether on by default or not
+        module = DepthModule(model_cfg, cfg.loss).eval()
         ls = module.local_scaling
         B = args.batch
         img = torch.rand(B, 3, H, W)

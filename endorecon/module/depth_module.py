@@ -68,17 +68,19 @@ def _plain(cfg: Any) -> dict:
 
 
 def _local_scaling(cfg: Mapping | None) -> dict | None:
-    """``model.local_scaling`` checked: None (off) or dict(sigma_fraction > 0, prior > 0)."""
+    """``model.local_scaling`` checked: None (off: null or ``enabled: false``) or dict(sigma_fraction > 0, prior > 0)."""
     if cfg is None:
         return None
     cfg = dict(cfg)
+    enabled = bool(cfg.pop("enabled", True))
     unknown = set(cfg) - {"sigma_fraction", "prior"}
     if unknown or not {"sigma_fraction", "prior"} <= set(cfg):
-        raise ValueError(f"model.local_scaling needs exactly sigma_fraction and prior (or null), got {sorted(cfg)}")
+        raise ValueError(f"model.local_scaling needs sigma_fraction and prior (and optionally enabled), or null; "
+                         f"got {sorted(cfg)}")
     out = {k: float(cfg[k]) for k in ("sigma_fraction", "prior")}
     if not (out["sigma_fraction"] > 0 and out["prior"] > 0):
         raise ValueError(f"model.local_scaling.sigma_fraction and prior must be > 0, got {out}")
-    return out
+    return out if enabled else None
 
 
 def _cat(batch: Mapping, a: str, b: str) -> torch.Tensor:
@@ -96,7 +98,7 @@ class DepthModule(L.LightningModule):
             ``log_images_every_n_steps`` (0 = never), ``depth_scaling`` (the Depth Scaling
             Layer's estimator, :data:`endorecon.networks.scaling.SCALE_MODES`; absent in
             checkpoints made before it existed: ``"ratio_of_sums"``, what those were trained with),
-            ``local_scaling`` (null, or ``sigma_fraction`` of the image width and ``prior``: the
+            ``local_scaling`` (null, or ``enabled``, ``sigma_fraction`` of the image width and ``prior``: the
             inference-only local scaling of :func:`endorecon.networks.scaling.scale_depth_locally`
             in :meth:`predict`; absent in older checkpoints: off).
         loss: ``cfg.loss``: weights ``sparse_depth``, ``depth_consistency``, ``sparse_flow``,

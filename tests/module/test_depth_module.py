@@ -337,6 +337,8 @@ def test_local_scaling_in_predict_only_and_kept_in_the_checkpoint(tmp_path):
     out_on = loaded.compute_losses(batch)
     torch.testing.assert_close(out_on["depth"], out_off["depth"])
     assert DepthModule(_model_cfg()).local_scaling is None  # checkpoints made before it: off
+    assert DepthModule(_model_cfg(local_scaling={**ls, "enabled": False})).local_scaling is None
+    assert DepthModule(_model_cfg(local_scaling={**ls, "enabled": True})).local_scaling == ls
     for bad in ({"sigma_fraction": 0.1}, {"sigma_fraction": 0.0, "prior": 0.5}, {"sigma": 1, "prior": 1}):
         with pytest.raises(ValueError, match="local_scaling"):
             DepthModule(_model_cfg(local_scaling=bad))
