@@ -50,6 +50,14 @@ def check_scale_mode(mode: str) -> str:
     return mode
 
 
+def _log_ratio(depth: torch.Tensor, sparse_depth: torch.Tensor, valid: torch.Tensor, eps: float):
+    """log sparse − log depth at ``valid`` points whose prediction is finite and above ``eps``, 0 elsewhere
+    (log 1 − log 1, so no NaN/inf reaches a sum or a gradient).  -> (log_ratio, valid), each (B,1,H,W)."""
+    valid = valid & torch.isfinite(depth) & (depth > eps)
+    one = torch.ones((), dtype=depth.dtype, device=depth.device)
+    return torch.log(torch.where(valid, sparse_depth, one)) - torch.log(torch.where(valid, depth, one)), valid
+
+
 def depth_scale(
     depth: torch.Tensor,
     sparse_depth: torch.Tensor,
@@ -73,9 +81,7 @@ def depth_scale(
     check_scale_mode(mode)
     valid = sparse_valid.bool() & torch.isfinite(sparse_depth) & (sparse_depth > 0)
     if mode == "log_mean":
-        valid = valid & torch.isfinite(depth) & (depth > eps)
-        one = torch.ones((), dtype=depth.dtype, device=depth.device)
-        log_ratio = torch.log(torch.where(valid, sparse_depth, one)) - torch.log(torch.where(valid, depth, one))
+        log_ratio, valid = _log_ratio(depth, sparse_depth, valid, eps)
         n = valid.flatten(1).sum(1)
         has = n > 0
         scale = torch.exp(log_ratio.flatten(1).sum(1) / n.clamp(min=1).to(depth.dtype))  # 1 where n == 0
@@ -145,10 +151,7 @@ def local_log_scale(
         raise ValueError(f"local scaling needs sigma_px > 0 and prior > 0, got {sigma_px}, {prior} "
                          "(model.local_scaling.sigma_fraction / prior)")
     valid = sparse_valid.bool() & torch.isfinite(sparse_depth) & (sparse_depth > 0)
-    valid = valid & torch.isfinite(depth) & (depth > eps)
-    one = torch.ones((), dtype=depth.dtype, device=depth.device)
-    res = torch.where(valid, torch.log(torch.where(valid, sparse_depth, one)) - torch.log(torch.where(valid, depth, one)),
-                      torch.zeros((), dtype=depth.dtype, device=depth.device))
+    res, valid = _log_ratio(depth, sparse_depth, valid, eps)
     return _gaussian_sum(res, sigma_px) / (_gaussian_sum(valid.to(depth.dtype), sigma_px) + prior)
 
 

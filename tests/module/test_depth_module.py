@@ -281,15 +281,20 @@ def test_validation_and_images_logged(tmp_path):
     assert "train/input_depth_std_sparse_error" in ev.Tags()["images"]
 
 
-@pytest.mark.parametrize("mode", ["ratio_of_sums", "log_mean"])
-def test_depth_scaling_mode_is_used_and_kept_in_the_checkpoint(tmp_path, mode):
-    torch.manual_seed(0)
-    module = DepthModule(_model_cfg(depth_scaling=mode), {"warmup_epochs": 0})
-    batch = make_batch()
+def _fit_and_reload(tmp_path, model_cfg, batch):
+    """A DepthModule of ``model_cfg`` trained one step on ``batch``, saved and loaded back from its checkpoint."""
+    module = DepthModule(model_cfg, {"warmup_epochs": 0})
     trainer = _trainer(tmp_path, 1)
     trainer.fit(module, DataLoader([batch], batch_size=None))
     trainer.save_checkpoint(tmp_path / "m.ckpt")
-    loaded = DepthModule.load_from_checkpoint(tmp_path / "m.ckpt")
+    return DepthModule.load_from_checkpoint(tmp_path / "m.ckpt")
+
+
+@pytest.mark.parametrize("mode", ["ratio_of_sums", "log_mean"])
+def test_depth_scaling_mode_is_used_and_kept_in_the_checkpoint(tmp_path, mode):
+    torch.manual_seed(0)
+    batch = make_batch()
+    loaded = _fit_and_reload(tmp_path, _model_cfg(depth_scaling=mode), batch)
     assert loaded.scale_mode == mode
     img, mask, sd, sv = batch["image_i"], batch["mask_i"], batch["sparse_depth_i"], batch["sparse_valid_i"]
     d, _ = loaded.predict(img, mask, sd, sv)
@@ -314,12 +319,8 @@ def test_old_checkpoints_keep_the_ratio_of_sums():
 def test_local_scaling_in_predict_only_and_kept_in_the_checkpoint(tmp_path):
     torch.manual_seed(0)
     ls = {"sigma_fraction": 0.1, "prior": 0.5}
-    module = DepthModule(_model_cfg(depth_scaling="log_mean", local_scaling=ls), {"warmup_epochs": 0})
     batch = make_batch()
-    trainer = _trainer(tmp_path, 1)
-    trainer.fit(module, DataLoader([batch], batch_size=None))
-    trainer.save_checkpoint(tmp_path / "m.ckpt")
-    loaded = DepthModule.load_from_checkpoint(tmp_path / "m.ckpt")
+    loaded = _fit_and_reload(tmp_path, _model_cfg(depth_scaling="log_mean", local_scaling=ls), batch)
     assert loaded.local_scaling == ls
     img, mask, sd, sv = batch["image_i"], batch["mask_i"], batch["sparse_depth_i"], batch["sparse_valid_i"]
     d, s = loaded.predict(img, mask, sd, sv)

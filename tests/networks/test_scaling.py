@@ -42,14 +42,21 @@ def test_frames_without_points_keep_scale_one():
     assert (d[1] == 2.0).all() and (s[1] == 1.0).all()
 
 
+def _gradcheck_inputs(seed, shape, density):
+    """float64 depth, std, sparse depth (requiring grad) and a valid mask with ~``density`` of the pixels,
+    the first pixel of every frame among them."""
+    g = torch.Generator().manual_seed(seed)
+    depth = (torch.rand(shape, generator=g, dtype=torch.float64) + 0.5).requires_grad_()
+    std = (torch.rand(shape, generator=g, dtype=torch.float64) + 0.1).requires_grad_()
+    sparse = (torch.rand(shape, generator=g, dtype=torch.float64) + 1).requires_grad_()
+    valid = torch.rand(shape, generator=g) < density
+    valid[:, 0, 0, 0] = True
+    return depth, std, sparse, valid
+
+
 @pytest.mark.parametrize("mode", ["ratio_of_sums", "log_mean"])
 def test_gradcheck(mode):
-    g = torch.Generator().manual_seed(1)
-    depth = (torch.rand(2, 1, 4, 5, generator=g, dtype=torch.float64) + 0.5).requires_grad_()
-    std = (torch.rand(2, 1, 4, 5, generator=g, dtype=torch.float64) + 0.1).requires_grad_()
-    sparse = (torch.rand(2, 1, 4, 5, generator=g, dtype=torch.float64) + 1).requires_grad_()
-    valid = torch.rand(2, 1, 4, 5, generator=g) < 0.5
-    valid[:, 0, 0, 0] = True
+    depth, std, sparse, valid = _gradcheck_inputs(1, (2, 1, 4, 5), 0.5)
     fn = lambda d, s, sp: scale_depth(d, s, sp, valid, mode=mode)[:2]  # noqa: E731
     assert torch.autograd.gradcheck(fn, (depth, std, sparse))
 
@@ -136,12 +143,7 @@ def test_local_scaling_depth_std_and_frames_without_points():
 
 
 def test_local_scaling_gradcheck():
-    g = torch.Generator().manual_seed(3)
-    depth = (torch.rand(2, 1, 6, 7, generator=g, dtype=torch.float64) + 0.5).requires_grad_()
-    std = (torch.rand(2, 1, 6, 7, generator=g, dtype=torch.float64) + 0.1).requires_grad_()
-    sparse = (torch.rand(2, 1, 6, 7, generator=g, dtype=torch.float64) + 1).requires_grad_()
-    valid = torch.rand(2, 1, 6, 7, generator=g) < 0.3
-    valid[:, 0, 0, 0] = True
+    depth, std, sparse, valid = _gradcheck_inputs(3, (2, 1, 6, 7), 0.3)
     fn = lambda d, s, sp: scale_depth_locally(d, s, sp, valid, 1.2, 0.5)[:2]  # noqa: E731
     assert torch.autograd.gradcheck(fn, (depth, std, sparse))
 
