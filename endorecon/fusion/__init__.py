@@ -2,10 +2,12 @@
 
 * ``kernel``: the per-voxel maths, pure torch.
 * ``tsdf``: ``AdaptiveTSDF`` / ``PlainTSDF`` volumes on Open3D's VoxelBlockGrid.
+* ``freespace``: the free-space check of the saved mesh (surface the frames see through).
 * ``ply``: mesh PLY with a per-vertex ``std`` property.
 * ``run``: ``build_fusion(cfg, median_depth)`` and the ``fuse_frames`` stage.
 """
 
+from endorecon.fusion.freespace import drop_seen_through, free_space_counts, seen_through_fraction
 from endorecon.fusion.kernel import averaging_rate, integrate_blocks, truncation
 from endorecon.fusion.ply import boundary_trim_rings_of, read_mesh_ply, write_mesh_ply
 from endorecon.fusion.run import build_fusion, fuse_frames, median_valid_depth
@@ -26,4 +28,7 @@ __all__ = [
     "drop_small_components",
     "pixel_band_blocks",
     "trim_boundary",
+    "free_space_counts",
+    "seen_through_fraction",
+    "drop_seen_through",
 ]

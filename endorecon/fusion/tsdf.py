@@ -27,6 +27,7 @@ import open3d.core as o3c
 import torch
 from torch.utils.dlpack import from_dlpack
 
+from endorecon.fusion.freespace import check_free_space_params, drop_seen_through, free_space_counts, seen_through_fraction
 from endorecon.fusion.kernel import clean_frame, erode_mask, integrate_blocks, integrate_blocks_, local_voxel_offsets
 from endorecon.fusion.ply import write_mesh_ply
 from endorecon.geometry import invert_pose, unproject
@@ -190,8 +191,13 @@ class _TSDFBase:
     def __init__(self, voxel_size: float, block_resolution: int = 8, block_count: int = 20000,
                  depth_max: float = float("inf"), mesh_weight_threshold: float = 1.0, device: str = "CPU:0",
                  min_component_fraction: float = 0.0, boundary_trim_rings: int = 0, mask_erode_px: int = 0,
-                 block_search: str = "sampled"):
+                 block_search: str = "sampled", free_space_max_fraction: float | None = None, free_space_tau: float = 0.1):
         self.boundary_trim_rings = _check_trim_rings(boundary_trim_rings)  # before any work, not at saving
+        self.free_space_max_fraction, self.free_space_tau = check_free_space_params(free_space_max_fraction, free_space_tau)
+        # the fused frames' full depth (cut-off included: far depth still says "free space up to here"),
+        # kept only for the free-space check of the saved mesh
+        self._seen: list[tuple[torch.Tensor, torch.Tensor | None, np.ndarray, np.ndarray]] = []
+        self.last_free_space: dict | None = None
         if block_search not in BLOCK_SEARCHES:
             raise InputError(f"fusion: block_search must be one of {', '.join(BLOCK_SEARCHES)}, got {block_search!r}",
                              fix="set fusion.block_search to every_pixel (every band voxel of a frame is updated) or sampled")
@@ -313,13 +319,46 @@ class _TSDFBase:
         """Extract the mesh, trim ``boundary_trim_rings`` rings off its open boundary and write it to
         ``path`` (PLY, atomically; the header records the trim); returns ``path``.
 
-        Only the saved product is trimmed: :meth:`extract_mesh` (simulated depth, failure detection)
-        keeps the boundary."""
-        mesh = trim_boundary(self.extract_mesh(), self.boundary_trim_rings)
+        With ``free_space_max_fraction`` set, surface that the fused frames see through goes too
+        (:meth:`drop_free_space`), then pieces under ``min_component_fraction`` again.  Only the saved product
+        is trimmed and checked: :meth:`extract_mesh` (simulated depth, failure detection) keeps it all."""
+        mesh = self.drop_free_space(trim_boundary(self.extract_mesh(), self.boundary_trim_rings))
+        # trimming and the free-space check can split pieces off the surface: the size rule holds for the saved mesh too
+        mesh = drop_small_components(mesh, self.min_component_fraction)
         path = Path(path)
         with atomic_path(path) as tmp:
             write_mesh_ply(tmp, mesh, boundary_trim_rings=self.boundary_trim_rings)
         return path
+
+    def _remember(self, depth: torch.Tensor, mask: torch.Tensor | None, K: np.ndarray, T: np.ndarray) -> None:
+        if self.free_space_max_fraction is not None:
+            self._seen.append((depth.clone(), None if mask is None else mask.clone(), K, T))  # the caller may reuse its arrays
+
+    def drop_free_space(self, mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.TriangleMesh:
+        """``mesh`` without the triangles at vertices that more than ``free_space_max_fraction`` of the fused
+        frames see through (:mod:`endorecon.fusion.freespace`); unchanged when the check is off.  What it
+        removed is in ``self.last_free_space`` and the log."""
+        if self.free_space_max_fraction is None or not self._seen or "indices" not in mesh.triangle:
+            return mesh
+        n_tri = int(mesh.triangle.indices.shape[0])
+        if n_tri == 0:
+            return mesh
+        pos = _torch_view(mesh.vertex.positions).to(torch.float64)
+        depth = torch.stack([d for d, _, _, _ in self._seen])
+        masks = [m for _, m, _, _ in self._seen]
+        mask = None if any(m is None for m in masks) else torch.stack(masks)
+        K = torch.as_tensor(np.stack([k for _, _, k, _ in self._seen]))
+        T = torch.as_tensor(np.stack([t for _, _, _, t in self._seen]))
+        on, through = free_space_counts(pos, depth, K, T, mask, self.free_space_tau)
+        frac = seen_through_fraction(on, through)
+        out = drop_seen_through(mesh, frac, self.free_space_max_fraction)
+        left = int(out.triangle.indices.shape[0]) if "indices" in out.triangle else 0
+        self.last_free_space = dict(triangles=n_tri, removed=n_tri - left, frames=len(self._seen))
+        if left < n_tri:
+            log.info("free-space check: %d of %d triangles removed (seen through by more than %.0f%% of the fused frames "
+                     "that have them in view; %d frames fused)", n_tri - left, n_tri, 100 * self.free_space_max_fraction,
+                     len(self._seen))
+        return out
 
 
 class AdaptiveTSDF(_TSDFBase):
@@ -347,6 +386,9 @@ class AdaptiveTSDF(_TSDFBase):
         mask_erode_px: pixels within this radius of the mask's edge or the image border are not fused
             (:func:`endorecon.fusion.kernel.erode_mask`).
         block_search: ``"sampled"`` or ``"every_pixel"``: how a frame's band finds its blocks (``_touch_blocks``).
+        free_space_max_fraction: the saved mesh loses surface that more than this fraction of the fused frames
+            see through (:meth:`drop_free_space`); None: no check (and no frame kept for it).
+        free_space_tau: relative depth tolerance of that check (:mod:`endorecon.fusion.freespace`).
     """
 
     attributes = ("tsdf", "weight", "color", "std")
@@ -357,9 +399,10 @@ class AdaptiveTSDF(_TSDFBase):
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
                  std_mode: str = "propagate", compile: bool = False, device: str = "CPU:0",
                  min_component_fraction: float = 0.0, boundary_trim_rings: int = 0, mask_erode_px: int = 0,
-                 block_search: str = "sampled"):
+                 block_search: str = "sampled", free_space_max_fraction: float | None = None, free_space_tau: float = 0.1):
         super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
-                         min_component_fraction, boundary_trim_rings, mask_erode_px, block_search)
+                         min_component_fraction, boundary_trim_rings, mask_erode_px, block_search,
+                         free_space_max_fraction, free_space_tau)
         if not (0 < c1 <= c2 <= 1):
             raise InputError(f"fusion: need 0 < c1 <= c2 <= 1, got c1={c1}, c2={c2}", fix="fix fusion.c1 / fusion.c2")
         if not (0 < trunc_min_voxels <= trunc_max_voxels):
@@ -406,6 +449,7 @@ class AdaptiveTSDF(_TSDFBase):
             raise InputError("fusion: the adaptive TSDF needs a depth std per pixel", fix="pass std, or use fusion=plain")
         depth, std, color, mask, K, T = self._check(depth, std, color, K, cam_from_world, mask)
         self.frames += 1
+        self._remember(depth, mask, K, T)
         depth, std, color, widest = self._clean(depth, std, color, mask, self._params)
         widest = float(widest)
         if widest <= 0:  # no usable pixel
@@ -496,9 +540,11 @@ class PlainTSDF(_TSDFBase):
     def __init__(self, voxel_size: float, trunc_voxels: float = 6.0, depth_max: float = float("inf"),
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
                  device: str = "CPU:0", min_component_fraction: float = 0.0, boundary_trim_rings: int = 0,
-                 mask_erode_px: int = 0, block_search: str = "sampled"):
+                 mask_erode_px: int = 0, block_search: str = "sampled", free_space_max_fraction: float | None = None,
+                 free_space_tau: float = 0.1):
         super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
-                         min_component_fraction, boundary_trim_rings, mask_erode_px, block_search)
+                         min_component_fraction, boundary_trim_rings, mask_erode_px, block_search,
+                         free_space_max_fraction, free_space_tau)
         if not trunc_voxels > 0:
             raise InputError(f"fusion: trunc_voxels must be > 0, got {trunc_voxels}")
         self.trunc_voxels = float(trunc_voxels)
@@ -511,6 +557,7 @@ class PlainTSDF(_TSDFBase):
         """Fuse one frame (arguments as :meth:`AdaptiveTSDF.integrate`; ``std`` is ignored)."""
         depth, _, color, mask, K, T = self._check(depth, None, color, K, cam_from_world, mask)
         self.frames += 1
+        self._remember(depth, mask, K, T)
         depth, _, color, widest = clean_frame(depth, None, color, mask, self._params)
         if float(widest) <= 0:
             return

@@ -343,6 +343,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         keep = use
     volume = fuse_sequence(cfg.fusion, seq, depth, std, colors, poses, keep)
     volume.save_mesh(out_dir / "mesh.ply")
+    free_space = volume.last_free_space  # what the free-space check removed from the saved mesh (None: off)
     sim, sim_valid = render_simulated(volume.extract_mesh(), seq, poses)
     save_simulated(out_dir / "simulated_depth.npz", sim, sim_valid)
     times["fusion2_s"] = time.perf_counter() - t0
@@ -357,6 +358,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         checked=int(len(report.checked_frames)) if hasattr(report, "checked_frames") else None,
         pgo=pgo_summary,
         resfm=resfm_info,
+        free_space=free_space,
         times=times,
         sfm_fingerprint=sfm_fingerprint(seq),  # the next iteration checks its SfM against these poses
     )

@@ -431,6 +431,7 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         f"- mesh: `mesh.ply` ({mesh_info}; coloured, per-vertex std), refined poses: `reconstruction/poses.txt`, "
         f"failure metrics: `reconstruction/failures.csv`",
         f"- dense PGO: {_pgo_line(summary.get('pgo'))}",
+        f"- free-space check: {_free_space_line(summary.get('free_space'))}",
         "",
         "| stage | time (s) | |",
         "| --- | ---: | --- |",
@@ -446,6 +447,14 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
     atomic_write_text(out / "timings.json", json.dumps(dict(stages=stages, refine=sub, total_s=total,
                                                             this_run_s=now), indent=2) + "\n")
     return out / "report.md"
+
+
+def _free_space_line(fs) -> str:
+    if not isinstance(fs, dict):
+        return "off (fusion.free_space_max_fraction=null) or not recorded"
+    share = fs["removed"] / fs["triangles"] if fs.get("triangles") else 0.0
+    return (f"{fs['removed']} of {fs['triangles']} triangles ({100 * share:.1f} %) removed: surface that most of the "
+            f"{fs['frames']} fused frames see through")
 
 
 def _pgo_line(pgo: dict | None) -> str:

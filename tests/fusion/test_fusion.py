@@ -12,6 +12,9 @@ from endorecon.fusion import (
     PlainTSDF,
     averaging_rate,
     build_fusion,
+    drop_seen_through,
+    free_space_counts,
+    seen_through_fraction,
     fuse_frames,
     read_mesh_ply,
     truncation,
@@ -597,3 +600,98 @@ def test_every_pixel_block_search_updates_every_band_voxel():
     for cls in (AdaptiveTSDF, PlainTSDF):
         with pytest.raises(InputError, match="block_search"):
             cls(voxel, block_search="open3d")
+
+
+# ---------------------------------------------------------------- free-space check of the saved mesh
+def _translated(x: float) -> torch.Tensor:
+    T = torch.eye(4, dtype=torch.float64)
+    T[0, 3] = -x  # camera centre at (x, 0, 0), looking along +z
+    return T
+
+
+def test_counts_on_a_plane_analytic():
+    """Frames see a plane at z = 2: a point in front is seen through, one on it is on, one behind is hidden,
+    one outside the image or behind the camera is not seen; masked and invalid pixels say nothing."""
+    n = 3
+    depth = torch.full((n, H, W), 2.0, dtype=torch.float64)
+    T = torch.stack([_translated(x) for x in (0.0, 0.1, -0.1)])
+    Kt = torch.as_tensor(K)
+    pts = torch.tensor([[0.0, 0.0, 1.0],    # in front of the plane: free space in every frame
+                        [0.0, 0.0, 2.0],    # on it
+                        [0.0, 0.0, 2.1],    # within tau behind: still on (|2 - 2.1| <= 0.1 * 2.1)
+                        [0.0, 0.0, 3.0],    # hidden behind it
+                        [50.0, 0.0, 1.0],   # outside every image
+                        [0.0, 0.0, -1.0]],  # behind the cameras
+                       dtype=torch.float64)
+    on, through = free_space_counts(pts, depth, Kt, T, tau=0.1)
+    assert on.tolist() == [0, 3, 3, 0, 0, 0]
+    assert through.tolist() == [3, 0, 0, 0, 0, 0]
+    assert seen_through_fraction(on, through).tolist() == [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    # tau decides "on": 2.1 is not on the plane within 2 %
+    on2, _ = free_space_counts(pts[2:3], depth, Kt, T, tau=0.02)
+    assert on2.tolist() == [0]
+    # the pixel the first point falls on in frame 0: masked there, NaN in frame 1 -> only frame 2 counts
+    u, v = K[0, 2], K[1, 2]  # the point (0, 0, 1) projects to the principal point in frame 0
+    mask = torch.ones(n, H, W, dtype=torch.bool)
+    mask[0, int(round(v)), int(round(u))] = False
+    depth2 = depth.clone()
+    uv1 = K[0, 0] * (0.0 - 0.1) / 1.0 + K[0, 2]
+    depth2[1, int(round(v)), int(round(uv1))] = float("nan")
+    on3, through3 = free_space_counts(pts[:1], depth2, Kt, T, mask, tau=0.1)
+    assert (on3.tolist(), through3.tolist()) == ([0], [1])
+    # per-frame intrinsics give the same counts as shared ones
+    on4, through4 = free_space_counts(pts, depth, Kt.expand(n, 3, 3), T, tau=0.1)
+    assert torch.equal(on4, on) and torch.equal(through4, through)
+
+
+@pytest.mark.parametrize("bad", [dict(points=torch.zeros(4, 2)), dict(depth=torch.ones(H, W)),
+                                 dict(cam_from_world=torch.eye(4)[None].repeat(2, 1, 1)), dict(K=torch.eye(2)),
+                                 dict(mask=torch.ones(3, 3, dtype=torch.bool)), dict(tau=0.0)])
+def test_counts_check_their_inputs(bad):
+    args = dict(points=torch.zeros(4, 3, dtype=torch.float64), depth=torch.ones(1, H, W), K=torch.as_tensor(K),
+                cam_from_world=torch.eye(4, dtype=torch.float64)[None], mask=None, tau=0.1)
+    args.update(bad)
+    with pytest.raises(InputError, match="free space"):
+        free_space_counts(**args)
+
+
+def test_drop_seen_through_removes_the_triangles_at_violated_vertices():
+    n = 6
+    grid = _grid_mesh(n)
+    frac = np.zeros(n * n)
+    assert drop_seen_through(grid, frac, 0.5) is grid
+    frac[2 * n + 2] = 0.8  # an inner vertex: its six triangles go
+    out = drop_seen_through(grid, frac, 0.5)
+    assert len(out.triangle.indices) == len(grid.triangle.indices) - 6
+    assert len(drop_seen_through(grid, frac, 0.8).triangle.indices) == len(grid.triangle.indices)  # not above
+    with pytest.raises(InputError, match="vertices"):
+        drop_seen_through(grid, frac[:-1], 0.5)
+
+
+@pytest.mark.parametrize("cls", [AdaptiveTSDF, PlainTSDF])
+def test_saved_mesh_loses_surface_the_other_frames_see_through(cls, tmp_path):
+    """One frame's outlier patch 0.4 in front of a plane is fused (no size rule here); the three other
+    frames see the plane through it, so the saved mesh drops it with the check and keeps it without;
+    the extracted mesh (simulated depth) keeps it either way, and the plane stays whole."""
+    voxel = 0.02
+    poses = [look_at((0.05 * np.cos(a), 0.05 * np.sin(a), 0.0), (0.0, 0.0, 1.0)) for a in np.linspace(0, 2 * np.pi, 4, endpoint=False)]
+    depths = [plane_depth(T, (0.0, 0.0, 1.0), 1.0) for T in poses]
+    depths[0] = depths[0].copy()
+    depths[0][20:30, 30:40] = 0.6
+    stds = [np.full((H, W), 0.2 * voxel) for _ in poses]
+    kw = {"compile": False} if cls is AdaptiveTSDF else {}
+    saved = {}
+    for check in (None, 0.5):
+        vol = cls(voxel, free_space_max_fraction=check, **kw)
+        integrate_all(vol, depths, stds, poses)
+        saved[check] = read_mesh_ply(vol.save_mesh(tmp_path / f"mesh_{check}.ply")).vertex.positions.numpy()
+        extracted = vol.extract_mesh().vertex.positions.numpy()
+        assert (np.abs(extracted[:, 2] - 0.6) < 0.1).sum() > 10
+    assert (np.abs(saved[None][:, 2] - 0.6) < 0.1).sum() > 10
+    assert (np.abs(saved[0.5][:, 2] - 0.6) < 0.1).sum() == 0
+    assert vol.last_free_space["removed"] > 0 and vol.last_free_space["frames"] == 4
+    plane = lambda p: (np.abs(p[:, 2] - 1.0) < 0.1).sum()  # noqa: E731
+    assert plane(saved[0.5]) >= 0.97 * plane(saved[None])
+    for bad in (dict(free_space_max_fraction=1.5), dict(free_space_max_fraction="x"), dict(free_space_tau=0.0)):
+        with pytest.raises(InputError, match="free_space"):
+            cls(voxel, **bad, **kw)

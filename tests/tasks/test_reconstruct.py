@@ -263,6 +263,9 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
         assert stage in report
     assert "test-time adaptation: 2 steps" in report
     assert re.search(r"dense PGO: objective -?[\d.e+-]+ -> -?[\d.e+-]+; pose updates [\d.e+-]+° median", report)
+    # on by default: what the free-space check removed is in the report and the refine summary
+    assert re.search(r"free-space check: \d+ of \d+ triangles \([\d.]+ %\) removed", report)
+    assert json.loads((run_dir / "reconstruction/summary.json").read_text())["free_space"]["triangles"] > 0
     first = json.loads((run_dir / "timings.json").read_text())["stages"]
     assert not any(s["skipped"] for s in first.values())
     mesh_bytes = (run_dir / "mesh.ply").read_bytes()
