@@ -343,7 +343,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         keep = use
     volume = fuse_sequence(cfg.fusion, seq, depth, std, colors, poses, keep)
     volume.save_mesh(out_dir / "mesh.ply")
-    free_space = volume.last_free_space  # what the free-space check removed from the saved mesh (None: off)
+    free_space = getattr(volume, "last_free_space", None)  # what the free-space check removed from the saved mesh (None: off)
     sim, sim_valid = render_simulated(volume.extract_mesh(), seq, poses)
     save_simulated(out_dir / "simulated_depth.npz", sim, sim_valid)
     times["fusion2_s"] = time.perf_counter() - t0
