@@ -87,8 +87,9 @@ def free_space_counts(points: torch.Tensor, depth: torch.Tensor, K: torch.Tensor
     for i in range(N):  # one frame at a time: memory O(P), not O(N P)
         T = cam_from_world[i : i + 1].to(dev, torch.float64)
         uv, z = project(transform_points(T, pts[None]), K[i : i + 1].to(dev, torch.float64))
-        u = torch.round(uv[0, :, 0])
-        v = torch.round(uv[0, :, 1])
+        # the project's nearest-pixel rule (endorecon.data.sparse.nearest_pixel): pixel k covers [k - 0.5, k + 0.5)
+        u = torch.floor(uv[0, :, 0] + 0.5)
+        v = torch.floor(uv[0, :, 1] + 0.5)
         z = z[0]
         inside = (z > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
         ui = u.clamp(0, W - 1).long()
