@@ -1,9 +1,10 @@
-"""Benchmark: the cost of inference-time local scaling against the network forward it follows.
+"""Benchmark: the cost of the inference-time options against the network forward they follow.
 
-``DepthModule.predict`` (network forward + frame scale) is timed with and without
-``model.local_scaling`` on the same random frames and sparse points (~1 % of the
-pixels, as the phantom's SfM gives), at 128x160 (CPU model) and 256x320
-(FC-DenseNet-57), interleaved, best of N.  Prints ms per batch and the ratio.
+``DepthModule.predict`` (network forward + frame scale) is timed without and with
+``model.local_scaling``, and with local scaling and ``model.flip_average`` (a second
+forward of the mirrored frames), on the same random frames and sparse points (~1 % of
+the pixels, as the phantom's SfM gives), at 128x160 (CPU model) and 256x320
+(FC-DenseNet-57), interleaved, best of N.  Prints ms per batch and the ratios to the first.
 
     .venv/bin/python benchmarks/local_scaling.py
     .venv/bin/python benchmarks/local_scaling.py --batch 8 --repeats 5
@@ -52,18 +53,20 @@ def main() -> None:
         mask = torch.ones(B, 1, H, W, dtype=torch.bool)
         valid = torch.rand(B, 1, H, W) < 0.01
         sparse = torch.where(valid, torch.rand(B, 1, H, W) + 0.5, torch.zeros(()))
-        times = {"frame scale only": [], "with local scaling": []}
+        variants = {"frame scale only": (None, False), "with local scaling": (ls, False),
+                    "local scaling + flip averaging": (ls, True)}
+        times = {name: [] for name in variants}
         with torch.no_grad():
             module.predict(img, mask, sparse, valid)  # warm-up (allocator, oneDNN kernels)
-            for _ in range(args.repeats):  # interleaved: both see the same machine load
-                module.local_scaling = None
-                times["frame scale only"].append(_seconds(lambda: module.predict(img, mask, sparse, valid)))
-                module.local_scaling = ls
-                times["with local scaling"].append(_seconds(lambda: module.predict(img, mask, sparse, valid)))
-        a, b = min(times["frame scale only"]), min(times["with local scaling"])
+            for _ in range(args.repeats):  # interleaved: all see the same machine load
+                for name, (local, flip) in variants.items():
+                    module.local_scaling, module.flip_average = local, flip
+                    times[name].append(_seconds(lambda: module.predict(img, mask, sparse, valid)))
+        a, b, c = (min(times[name]) for name in variants)
         sigma = ls["sigma_fraction"] * W
         print(f"{model} {H}x{W}, batch {B}, sigma {sigma:.0f} px: predict {1e3 * a:.1f} ms, "
-              f"with local scaling {1e3 * b:.1f} ms, ratio {b / a:.3f} (best of {args.repeats})")
+              f"with local scaling {1e3 * b:.1f} ms (ratio {b / a:.3f}), and flip averaging {1e3 * c:.1f} ms "
+              f"(ratio {c / a:.3f}) (best of {args.repeats})")
 
 
 if __name__ == "__main__":

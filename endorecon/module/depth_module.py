@@ -34,6 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 from endorecon.geometry import invert_pose, warp_depth
 from endorecon.losses import dense_simulation_loss, depth_consistency_loss, sparse_depth_loss, sparse_flow_loss
 from endorecon.module.visuals import pair_panel
+from endorecon.networks.flip import predict_flip_averaged
 from endorecon.networks.scaling import check_scale_mode, scale_depth, scale_depth_locally
 
 BATCH_KEYS = (
@@ -100,7 +101,9 @@ class DepthModule(L.LightningModule):
             checkpoints made before it existed: ``"ratio_of_sums"``, what those were trained with),
             ``local_scaling`` (null, or ``enabled``, ``sigma_fraction`` of the image width and ``prior``: the
             inference-only local scaling of :func:`endorecon.networks.scaling.scale_depth_locally`
-            in :meth:`predict`; absent in older checkpoints: off).
+            in :meth:`predict`; absent in older checkpoints: off), ``flip_average`` (bool: :meth:`predict`
+            combines each frame's prediction with its mirror image's,
+            :func:`endorecon.networks.flip.predict_flip_averaged`; absent in older checkpoints: off).
         loss: ``cfg.loss``: weights ``sparse_depth``, ``depth_consistency``, ``sparse_flow``,
             ``dense_simulation``; ``eps``; ``warmup_epochs``; ``flow_std_floor``.
     """
@@ -122,6 +125,9 @@ class DepthModule(L.LightningModule):
         # checked here, not at the first batch: a typo fails before any data is loaded
         self.scale_mode = check_scale_mode(str(model.get("depth_scaling", "ratio_of_sums")))
         self.local_scaling = _local_scaling(model.get("local_scaling"))
+        self.flip_average = model.get("flip_average", False)
+        if not isinstance(self.flip_average, bool):
+            raise ValueError(f"model.flip_average must be true or false, got {self.flip_average!r}")
         self.log_images_every_n_steps = int(model.get("log_images_every_n_steps", 0))
         self.skipped_batches = 0
 
@@ -144,14 +150,18 @@ class DepthModule(L.LightningModule):
             images: (B,3,H,W) in [0,1].  mask: (B,1,H,W) bool.
             sparse_depth, sparse_valid: optional (B,1,H,W); if given, the output is
                 scaled to the SfM scale by the Depth Scaling Layer, then locally if
-                ``model.local_scaling`` is set.
+                ``model.local_scaling`` is set.  With ``model.flip_average`` the network's output is first
+                averaged with that of the mirrored images.
         Returns:
             depth, std: (B,1,H,W).
         """
         was_training = self.training
         self.eval()
         try:
-            depth, std = self.net(images, mask)
+            if self.flip_average:
+                depth, std = predict_flip_averaged(self.net, images, mask)
+            else:
+                depth, std = self.net(images, mask)
             if sparse_depth is not None:
                 if sparse_valid is None:
                     sparse_valid = sparse_depth > 0

@@ -12,7 +12,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from endorecon.module import DepthModule
-from endorecon.networks import FCDenseNet, scale_depth, scale_depth_locally
+from endorecon.networks import FCDenseNet, combine_predictions, scale_depth, scale_depth_locally
 
 H, W = 64, 80
 TINY_NET = {
@@ -343,3 +343,28 @@ def test_local_scaling_in_predict_only_and_kept_in_the_checkpoint(tmp_path):
     for bad in ({"sigma_fraction": 0.1}, {"sigma_fraction": 0.0, "prior": 0.5}, {"sigma": 1, "prior": 1}):
         with pytest.raises(ValueError, match="local_scaling"):
             DepthModule(_model_cfg(local_scaling=bad))
+
+
+def test_flip_average_in_predict_only_and_kept_in_the_checkpoint(tmp_path):
+    torch.manual_seed(0)
+    batch = make_batch()
+    loaded = _fit_and_reload(tmp_path, _model_cfg(depth_scaling="log_mean", flip_average=True), batch)
+    assert loaded.flip_average is True
+    img, mask, sd, sv = batch["image_i"], batch["mask_i"], batch["sparse_depth_i"], batch["sparse_valid_i"]
+    d, s = loaded.predict(img, mask, sd, sv)
+    with torch.no_grad():
+        da, sa = loaded.eval()(img, mask)
+        db, sb = loaded(torch.flip(img, [-1]), torch.flip(mask, [-1]))
+    d0, s0 = combine_predictions(da, sa, torch.flip(db, [-1]), torch.flip(sb, [-1]))
+    d1, s1, _, _ = scale_depth(d0, s0, sd, sv, mode="log_mean")
+    torch.testing.assert_close(d, d1)
+    torch.testing.assert_close(s, s1)
+    loaded.flip_average = False
+    d_off, _ = loaded.predict(img, mask, sd, sv)
+    assert (d_off - d).abs().max() > 1e-4  # the random network is not mirror-symmetric: the option did something
+    out_off = loaded.compute_losses(batch)
+    loaded.flip_average = True
+    torch.testing.assert_close(loaded.compute_losses(batch)["depth"], out_off["depth"])  # losses: one pass
+    assert DepthModule(_model_cfg()).flip_average is False  # checkpoints made before it: off
+    with pytest.raises(ValueError, match="flip_average"):
+        DepthModule(_model_cfg(flip_average="yes"))
