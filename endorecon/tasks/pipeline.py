@@ -149,9 +149,16 @@ def infer_depth(module, seq: Sequence, cache, batch_size: int = 8, frames: list[
 
 
 # ------------------------------------------------------------------- fusion
-def fuse_sequence(cfg_fusion, seq: Sequence, depth, std, colors, cam_from_world, use: np.ndarray):
-    """Fuse the frames ``use`` (N,) bool into a volume; returns the volume (call ``extract_mesh``/``save_mesh``)."""
+def fuse_sequence(cfg_fusion, seq: Sequence, depth, std, colors, cam_from_world, use: np.ndarray,
+                  saved: bool = True):
+    """Fuse the frames ``use`` (N,) bool into a volume; returns the volume (call ``extract_mesh``/``save_mesh``).
+
+    ``saved=False``: only ``extract_mesh`` will be called, so the free-space check of the saved mesh is off
+    and the volume keeps no copy of the frames' depth for it."""
     from endorecon.fusion.run import build_fusion
+
+    if not saved:
+        cfg_fusion = {**cfg_fusion, "free_space_max_fraction": None}
 
     idx = np.flatnonzero(use & np.isfinite(cam_from_world).all(axis=(1, 2)))
     if len(idx) == 0:
@@ -279,7 +286,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
 
     # 1. fuse with the current poses, render it back: the simulated depth that failure detection judges.
     t0 = time.perf_counter()
-    volume = fuse_sequence(cfg.fusion, seq, depth, std, colors, poses, use)
+    volume = fuse_sequence(cfg.fusion, seq, depth, std, colors, poses, use, saved=False)
     mesh0 = volume.extract_mesh()
     sim, sim_valid = render_simulated(mesh0, seq, poses)
     times["fusion_s"] = time.perf_counter() - t0

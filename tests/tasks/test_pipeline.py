@@ -45,6 +45,21 @@ def test_fusing_gt_depth_at_gt_poses_lands_on_the_gt_mesh(tiny):
         pipeline.fuse_sequence(cfg, seq, depth, depth * 0.01, colors, gt.cam_from_world, np.zeros(len(seq), bool))
 
 
+def test_a_volume_that_is_not_saved_keeps_no_frames_for_the_free_space_check(tiny):
+    root, seq, gt = tiny
+    cfg = OmegaConf.create({"name": "adaptive", "voxel_size": None, "voxel_fraction": 0.02, "compile": False,
+                            "device": "CPU:0", "free_space_max_fraction": 0.5, "free_space_tau": 0.1})
+    depth = torch.from_numpy(gt.depth_mm)[:, None]
+    colors = np.stack([seq.load_frame(i) for i in range(len(seq))]).astype(np.float32) / 255
+    use = np.ones(len(seq), bool)
+    saved = pipeline.fuse_sequence(cfg, seq, depth, depth * 0.01, colors, gt.cam_from_world, use)
+    assert saved.free_space_max_fraction == 0.5 and len(saved._seen) == len(seq)
+    extracted = pipeline.fuse_sequence(cfg, seq, depth, depth * 0.01, colors, gt.cam_from_world, use, saved=False)
+    assert extracted.free_space_max_fraction is None and extracted._seen == []
+    assert cfg.free_space_max_fraction == 0.5  # the caller's config is not changed
+    assert len(extracted.extract_mesh().triangle.indices) == len(saved.extract_mesh().triangle.indices)
+
+
 def test_ablation_variant_outputs_follow_their_checkpoint_and_settings(tmp_path):
     """A variant's cached outputs are kept only for the checkpoint and the settings they were made from."""
     import json
