@@ -69,18 +69,22 @@ def _plain(cfg: Any) -> dict:
 
 
 def _local_scaling(cfg: Mapping | None) -> dict | None:
-    """``model.local_scaling`` checked: None (off: null or ``enabled: false``) or dict(sigma_fraction > 0, prior > 0)."""
+    """``model.local_scaling`` checked: None (off: null or ``enabled: false``) or dict(sigma_fraction > 0,
+    prior > 0, max_log_ratio None or > 0; absent, as in older checkpoints: None)."""
     if cfg is None:
         return None
     cfg = dict(cfg)
     enabled = bool(cfg.pop("enabled", True))
-    unknown = set(cfg) - {"sigma_fraction", "prior"}
+    unknown = set(cfg) - {"sigma_fraction", "prior", "max_log_ratio"}
     if unknown or not {"sigma_fraction", "prior"} <= set(cfg):
-        raise ValueError(f"model.local_scaling needs sigma_fraction and prior (and optionally enabled), or null; "
-                         f"got {sorted(cfg)}")
+        raise ValueError(f"model.local_scaling needs sigma_fraction and prior (and optionally enabled, max_log_ratio), "
+                         f"or null; got {sorted(cfg)}")
     out = {k: float(cfg[k]) for k in ("sigma_fraction", "prior")}
-    if not (out["sigma_fraction"] > 0 and out["prior"] > 0):
-        raise ValueError(f"model.local_scaling.sigma_fraction and prior must be > 0, got {out}")
+    mlr = cfg.get("max_log_ratio")
+    out["max_log_ratio"] = None if mlr is None else float(mlr)
+    if not (out["sigma_fraction"] > 0 and out["prior"] > 0) or not (mlr is None or out["max_log_ratio"] > 0):
+        raise ValueError(f"model.local_scaling.sigma_fraction and prior must be > 0 and max_log_ratio null or > 0, "
+                         f"got {out}")
     return out if enabled else None
 
 
@@ -169,7 +173,8 @@ class DepthModule(L.LightningModule):
                 if self.local_scaling is not None:
                     sigma_px = self.local_scaling["sigma_fraction"] * depth.shape[-1]
                     depth, std, _ = scale_depth_locally(depth, std, sparse_depth, sparse_valid, sigma_px,
-                                                        self.local_scaling["prior"], self.eps)
+                                                        self.local_scaling["prior"], self.eps,
+                                                        self.local_scaling.get("max_log_ratio"))
         finally:
             self.train(was_training)
         return depth, std

@@ -27,6 +27,11 @@ and depth and std are multiplied by exp(field).  Near points the frame's own SfM
 depth corrects the network's shape (on the phantom, far walls that the network
 predicts too near, README); far from every point field → 0, i.e. the frame scale
 holds; ``prior`` is how many points' worth of weight that pull towards 0 has.
+
+With ``max_log_ratio`` set, a point whose res_p lies farther than that from the median res of its
+frame is left out of the field: SfM keeps a few gross outliers (on the phantom, observations at a
+fiftieth of the true depth, log error −5), and one of them alone would pull the depth around it
+towards zero, where the network's own error is a few tenths in log at most.
 """
 
 from __future__ import annotations
@@ -133,6 +138,7 @@ def local_log_scale(
     sigma_px: float,
     prior: float,
     eps: float = 1e-8,
+    max_log_ratio: float | None = None,
 ) -> torch.Tensor:
     """The log-scale field of the local scaling (module docstring).
 
@@ -141,6 +147,9 @@ def local_log_scale(
         sparse_depth: (B, 1, H, W) SfM depth (ignored where not valid; may hold NaN there).
         sparse_valid: (B, 1, H, W) bool.
         sigma_px: Gaussian σ in pixels (> 0).  prior: weight of field 0 (> 0).
+        max_log_ratio: None (every valid point counts) or > 0: points whose log ratio is farther than
+            this from their frame's median log ratio (the lower middle one when their number is even) are
+            left out (outliers).
     Returns:
         field: (B, 1, H, W); 0 on frames without a valid point.
     """
@@ -150,8 +159,16 @@ def local_log_scale(
     if not sigma_px > 0 or not prior > 0:
         raise ValueError(f"local scaling needs sigma_px > 0 and prior > 0, got {sigma_px}, {prior} "
                          "(model.local_scaling.sigma_fraction / prior)")
+    if max_log_ratio is not None and not max_log_ratio > 0:
+        raise ValueError(f"local scaling needs max_log_ratio > 0 or None, got {max_log_ratio} "
+                         "(model.local_scaling.max_log_ratio)")
     valid = sparse_valid.bool() & torch.isfinite(sparse_depth) & (sparse_depth > 0)
     res, valid = _log_ratio(depth, sparse_depth, valid, eps)
+    if max_log_ratio is not None:
+        nan = torch.full_like(res, float("nan"))
+        centre = torch.where(valid, res, nan).flatten(1).nanmedian(1).values.view(B, 1, 1, 1)  # NaN: no point
+        valid = valid & ((res - centre).abs() <= max_log_ratio)
+        res = torch.where(valid, res, torch.zeros_like(res))
     return _gaussian_sum(res, sigma_px) / (_gaussian_sum(valid.to(depth.dtype), sigma_px) + prior)
 
 
@@ -163,18 +180,19 @@ def scale_depth_locally(
     sigma_px: float,
     prior: float,
     eps: float = 1e-8,
+    max_log_ratio: float | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Local scaling of frame-scaled depth and std by their frame's sparse points (module docstring).
 
     Args:
         depth, std: (B, 1, H, W), e.g. the output of :func:`scale_depth`.
         sparse_depth: (B, 1, H, W); sparse_valid: (B, 1, H, W) bool.
-        sigma_px, prior: see :func:`local_log_scale`.
+        sigma_px, prior, max_log_ratio: see :func:`local_log_scale`.
     Returns:
         depth_scaled, std_scaled: (B, 1, H, W).  field: (B, 1, H, W) the log scale applied.
     """
     check_shape(std, "std", tuple(depth.shape))
-    field = local_log_scale(depth, sparse_depth, sparse_valid, sigma_px, prior, eps)
+    field = local_log_scale(depth, sparse_depth, sparse_valid, sigma_px, prior, eps, max_log_ratio)
     f = torch.exp(field)
     return depth * f, std * f, field
 

@@ -318,7 +318,7 @@ def test_old_checkpoints_keep_the_ratio_of_sums():
 
 def test_local_scaling_in_predict_only_and_kept_in_the_checkpoint(tmp_path):
     torch.manual_seed(0)
-    ls = {"sigma_fraction": 0.1, "prior": 0.5}
+    ls = {"sigma_fraction": 0.1, "prior": 0.5, "max_log_ratio": 0.5}
     batch = make_batch()
     loaded = _fit_and_reload(tmp_path, _model_cfg(depth_scaling="log_mean", local_scaling=ls), batch)
     assert loaded.local_scaling == ls
@@ -327,7 +327,7 @@ def test_local_scaling_in_predict_only_and_kept_in_the_checkpoint(tmp_path):
     with torch.no_grad():
         d0, s0 = loaded.eval()(img, mask)
     d1, s1, _, _ = scale_depth(d0, s0, sd, sv, mode="log_mean")
-    d2, s2, field = scale_depth_locally(d1, s1, sd, sv, 0.1 * img.shape[-1], 0.5)
+    d2, s2, field = scale_depth_locally(d1, s1, sd, sv, 0.1 * img.shape[-1], 0.5, max_log_ratio=0.5)
     torch.testing.assert_close(d, d2)
     torch.testing.assert_close(s, s2)
     assert field.abs().max() > 1e-3  # the plane's points do move the depth here
@@ -340,7 +340,11 @@ def test_local_scaling_in_predict_only_and_kept_in_the_checkpoint(tmp_path):
     assert DepthModule(_model_cfg()).local_scaling is None  # checkpoints made before it: off
     assert DepthModule(_model_cfg(local_scaling={**ls, "enabled": False})).local_scaling is None
     assert DepthModule(_model_cfg(local_scaling={**ls, "enabled": True})).local_scaling == ls
-    for bad in ({"sigma_fraction": 0.1}, {"sigma_fraction": 0.0, "prior": 0.5}, {"sigma": 1, "prior": 1}):
+    # no outlier test where the key is absent (checkpoints made before it) or null
+    for cfg in ({"sigma_fraction": 0.1, "prior": 0.5}, {**ls, "max_log_ratio": None}):
+        assert DepthModule(_model_cfg(local_scaling=cfg)).local_scaling == {**ls, "max_log_ratio": None}
+    for bad in ({"sigma_fraction": 0.1}, {"sigma_fraction": 0.0, "prior": 0.5}, {"sigma": 1, "prior": 1},
+                {**ls, "max_log_ratio": 0.0}, {**ls, "max_log_ratio": -0.5}):
         with pytest.raises(ValueError, match="local_scaling"):
             DepthModule(_model_cfg(local_scaling=bad))
 

@@ -142,9 +142,35 @@ def test_local_scaling_depth_std_and_frames_without_points():
     torch.testing.assert_close(local_log_scale(depth2, sparse2, valid2, 2.0, 0.5), ref)
 
 
+def test_local_field_leaves_out_outliers_beyond_max_log_ratio():
+    """An outlier (log ratio far from its frame's median) is left out: the field is that of the other points."""
+    sigma, prior = 2.0, 0.5
+    depth = torch.full((2, 1, 15, 40), 2.0, dtype=torch.float64)
+    sparse = torch.full_like(depth, float("nan"))
+    valid = torch.zeros_like(depth, dtype=torch.bool)
+    for x, r in [(5, 1.1), (12, 0.95), (20, 1.2), (28, 1.0), (35, 0.02)]:  # the last: 1/50 of the depth
+        sparse[:, 0, 7, x], valid[:, 0, 7, x] = 2.0 * r, True
+    valid[1, 0, 7, 35] = False  # frame 1: without the outlier
+    field = local_log_scale(depth, sparse, valid, sigma, prior, max_log_ratio=0.5)
+    torch.testing.assert_close(field[0], local_log_scale(depth, sparse, valid, sigma, prior)[1])
+    assert field[0, 0, 7, 35].item() == 0.0  # the frame scale holds where only the outlier was
+    # frame 1's median log ratio (the lower middle one of four) is log 1.0; the 1.2 point is 0.182 from it,
+    # the 1.1 point 0.095: within 0.19 nothing is left out, within 0.1 the 1.2 point is
+    torch.testing.assert_close(local_log_scale(depth, sparse, valid, sigma, prior, max_log_ratio=0.19)[1],
+                               local_log_scale(depth, sparse, valid, sigma, prior)[1])
+    tight = local_log_scale(depth, sparse, valid, sigma, prior, max_log_ratio=0.1)
+    assert tight[1, 0, 7, 20].item() == 0.0 and tight[1, 0, 7, 5].item() > 0
+    # without the threshold the outlier pulls the depth around it towards zero
+    assert local_log_scale(depth, sparse, valid, sigma, prior)[0, 0, 7, 35].item() < math.log(0.02) / 1.5 + 1e-9
+    # frames without any point: field 0, no NaN from the median
+    assert (local_log_scale(depth, sparse, torch.zeros_like(valid), sigma, prior, max_log_ratio=0.5) == 0).all()
+
+
 def test_local_scaling_gradcheck():
     depth, std, sparse, valid = _gradcheck_inputs(3, (2, 1, 6, 7), 0.3)
     fn = lambda d, s, sp: scale_depth_locally(d, s, sp, valid, 1.2, 0.5)[:2]  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (depth, std, sparse))
+    fn = lambda d, s, sp: scale_depth_locally(d, s, sp, valid, 1.2, 0.5, max_log_ratio=0.2)[:2]  # noqa: E731
     assert torch.autograd.gradcheck(fn, (depth, std, sparse))
 
 
@@ -157,3 +183,6 @@ def test_local_scaling_checks_its_arguments():
         local_log_scale(depth, depth, valid, 2.0, 0.0)
     with pytest.raises(ValueError, match="sparse_depth"):
         local_log_scale(depth, torch.ones(1, 1, 4, 5), valid, 2.0, 0.5)
+    for bad in (0.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match="max_log_ratio"):
+            local_log_scale(depth, depth, valid, 2.0, 0.5, max_log_ratio=bad)
