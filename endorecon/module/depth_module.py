@@ -103,7 +103,8 @@ class DepthModule(L.LightningModule):
             ``log_images_every_n_steps`` (0 = never), ``depth_scaling`` (the Depth Scaling
             Layer's estimator, :data:`endorecon.networks.scaling.SCALE_MODES`; absent in
             checkpoints made before it existed: ``"ratio_of_sums"``, what those were trained with),
-            ``local_scaling`` (null, or ``enabled``, ``sigma_fraction`` of the image width and ``prior``: the
+            ``local_scaling`` (null, or ``enabled``, ``sigma_fraction`` of the image width, ``prior`` and
+            optionally ``max_log_ratio``, the outlier test, null or absent: off: the
             inference-only local scaling of :func:`endorecon.networks.scaling.scale_depth_locally`
             in :meth:`predict`; absent in older checkpoints: off), ``flip_average`` (bool: :meth:`predict`
             combines each frame's prediction with its mirror image's,
