@@ -1,7 +1,8 @@
 """Depth fusion: adaptive TSDF (std-driven truncation, exponential averaging) and Open3D's plain TSDF.
 
 * ``kernel``: the per-voxel maths, pure torch.
-* ``tsdf``: ``AdaptiveTSDF`` / ``PlainTSDF`` volumes on Open3D's VoxelBlockGrid.
+* ``tsdf``: ``AdaptiveTSDF`` / ``PlainTSDF`` volumes on Open3D's VoxelBlockGrid; the saved mesh's boundary
+  trim and (adaptive, opt-in) uncertainty trim.
 * ``freespace``: the free-space check of the saved mesh (surface the frames see through).
 * ``ply``: mesh PLY with a per-vertex ``std`` property.
 * ``run``: ``build_fusion(cfg, median_depth)`` and the ``fuse_frames`` stage.
@@ -11,7 +12,8 @@ from endorecon.fusion.freespace import drop_seen_through, free_space_counts, see
 from endorecon.fusion.kernel import averaging_rate, integrate_blocks, truncation
 from endorecon.fusion.ply import boundary_trim_rings_of, read_mesh_ply, write_mesh_ply
 from endorecon.fusion.run import build_fusion, fuse_frames, median_valid_depth
-from endorecon.fusion.tsdf import AdaptiveTSDF, PlainTSDF, drop_small_components, pixel_band_blocks, trim_boundary
+from endorecon.fusion.tsdf import (AdaptiveTSDF, PlainTSDF, drop_small_components, drop_uncertain, pixel_band_blocks,
+                                   trim_boundary)
 
 __all__ = [
     "AdaptiveTSDF",
@@ -26,6 +28,7 @@ __all__ = [
     "write_mesh_ply",
     "boundary_trim_rings_of",
     "drop_small_components",
+    "drop_uncertain",
     "pixel_band_blocks",
     "trim_boundary",
     "free_space_counts",

@@ -147,6 +147,44 @@ def trim_boundary(mesh: o3d.t.geometry.TriangleMesh, rings: int) -> o3d.t.geomet
     return mesh.select_faces_by_mask(o3c.Tensor(keep, device=mesh.device))  # also drops the unused vertices
 
 
+def check_max_std_ratio(ratio) -> float | None:
+    """``fusion.max_std_ratio``: None (no uncertainty trim) or a number > 1 (at 1 or below half the mesh would go)."""
+    if ratio is None:
+        return None
+    try:
+        ok = not isinstance(ratio, bool) and float(ratio) > 1.0 and np.isfinite(float(ratio))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(f"fusion: max_std_ratio must be a number > 1 or null, got {ratio!r}",
+                         fix="set fusion.max_std_ratio=null (keep all surface) or e.g. 2 (drop surface whose fused std is "
+                             "over twice the mesh's median)")
+    return float(ratio)
+
+
+def drop_uncertain(mesh: o3d.t.geometry.TriangleMesh, max_std_ratio: float | None
+                   ) -> tuple[o3d.t.geometry.TriangleMesh, dict | None]:
+    """Remove the triangles of ``mesh`` with a vertex whose fused ``std`` exceeds ``max_std_ratio`` x the median
+    ``std`` of its vertices (unused vertices go too).  The ratio is scale-free, as SfM units are arbitrary.
+
+    Returns the mesh and what was removed (``triangles``, ``removed``, ``median_std``, ``threshold``); the mesh
+    unchanged and None when ``max_std_ratio`` is None, the mesh is empty or has no ``std``."""
+    ratio = check_max_std_ratio(max_std_ratio)
+    if ratio is None or "indices" not in mesh.triangle or mesh.triangle.indices.shape[0] == 0 or "std" not in mesh.vertex:
+        return mesh, None
+    std = mesh.vertex["std"].cpu().numpy().reshape(-1).astype(np.float64)
+    faces = mesh.triangle.indices.cpu().numpy().astype(np.int64)
+    used = np.unique(faces)
+    median = float(np.median(std[used]))
+    # a vertex without a finite std has no fused support to speak for it
+    uncertain = ~np.isfinite(std) | (std > ratio * median)
+    keep = ~uncertain[faces].any(axis=1)
+    info = dict(triangles=int(len(faces)), removed=int((~keep).sum()), median_std=median, threshold=ratio * median)
+    if keep.all():
+        return mesh, info
+    return mesh.select_faces_by_mask(o3c.Tensor(keep, device=mesh.device)), info
+
+
 def pixel_band_blocks(depth: torch.Tensor, K: torch.Tensor, cam_from_world: torch.Tensor, trunc: float,
                       block_size: float) -> torch.Tensor:
     """Hash-map blocks that the truncation band of a depth map passes through, at every usable pixel.
@@ -198,6 +236,7 @@ class _TSDFBase:
         # kept only for the free-space check of the saved mesh
         self._seen: list[tuple[torch.Tensor, torch.Tensor | None, np.ndarray, np.ndarray]] = []
         self.last_free_space: dict | None = None
+        self.last_uncertain: dict | None = None
         if block_search not in BLOCK_SEARCHES:
             raise InputError(f"fusion: block_search must be one of {', '.join(BLOCK_SEARCHES)}, got {block_search!r}",
                              fix="set fusion.block_search to every_pixel (every band voxel of a frame is updated) or sampled")
@@ -320,9 +359,11 @@ class _TSDFBase:
         ``path`` (PLY, atomically; the header records the trim); returns ``path``.
 
         With ``free_space_max_fraction`` set, surface that the fused frames see through goes too
-        (:meth:`drop_free_space`), then pieces under ``min_component_fraction`` again.  Only the saved product
+        (:meth:`drop_free_space`); with ``max_std_ratio`` set (adaptive fusion), surface whose fused std is over
+        that many times the median (:meth:`drop_uncertain`); then pieces under ``min_component_fraction`` again.  Only the saved product
         is trimmed and checked: :meth:`extract_mesh` (simulated depth, failure detection) keeps it all."""
         mesh = self.drop_free_space(trim_boundary(self.extract_mesh(), self.boundary_trim_rings))
+        mesh = self.drop_uncertain(mesh)
         # trimming and the free-space check can split pieces off the surface: the size rule holds for the saved mesh too
         mesh = drop_small_components(mesh, self.min_component_fraction)
         path = Path(path)
@@ -333,6 +374,16 @@ class _TSDFBase:
     def _remember(self, depth: torch.Tensor, mask: torch.Tensor | None, K: np.ndarray, T: np.ndarray) -> None:
         if self.free_space_max_fraction is not None:
             self._seen.append((depth.clone(), None if mask is None else mask.clone(), K, T))  # the caller may reuse its arrays
+
+    def drop_uncertain(self, mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.TriangleMesh:
+        """``mesh`` without its most uncertain surface (:func:`drop_uncertain`, ``self.max_std_ratio``); a volume
+        without std (plain TSDF) keeps it all.  What it removed is in ``self.last_uncertain`` and the log."""
+        mesh, self.last_uncertain = drop_uncertain(mesh, getattr(self, "max_std_ratio", None))
+        if self.last_uncertain and self.last_uncertain["removed"]:
+            u = self.last_uncertain
+            log.info("uncertainty trim: %d of %d triangles removed (fused std over %.3g = %.3g x the median %.3g)",
+                     u["removed"], u["triangles"], u["threshold"], self.max_std_ratio, u["median_std"])
+        return mesh
 
     def drop_free_space(self, mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.TriangleMesh:
         """``mesh`` without the triangles at vertices that more than ``free_space_max_fraction`` of the fused
@@ -389,6 +440,8 @@ class AdaptiveTSDF(_TSDFBase):
         free_space_max_fraction: the saved mesh loses surface that more than this fraction of the fused frames
             see through (:meth:`drop_free_space`); None: no check (and no frame kept for it).
         free_space_tau: relative depth tolerance of that check (:mod:`endorecon.fusion.freespace`).
+        max_std_ratio: the saved mesh loses surface whose fused std exceeds this many times the mesh's median
+            (:func:`drop_uncertain`); None: all kept.
     """
 
     attributes = ("tsdf", "weight", "color", "std")
@@ -399,7 +452,9 @@ class AdaptiveTSDF(_TSDFBase):
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
                  std_mode: str = "propagate", compile: bool = False, device: str = "CPU:0",
                  min_component_fraction: float = 0.0, boundary_trim_rings: int = 0, mask_erode_px: int = 0,
-                 block_search: str = "sampled", free_space_max_fraction: float | None = None, free_space_tau: float = 0.1):
+                 block_search: str = "sampled", free_space_max_fraction: float | None = None, free_space_tau: float = 0.1,
+                 max_std_ratio: float | None = None):
+        self.max_std_ratio = check_max_std_ratio(max_std_ratio)  # before any work, not at saving
         super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
                          min_component_fraction, boundary_trim_rings, mask_erode_px, block_search,
                          free_space_max_fraction, free_space_tau)

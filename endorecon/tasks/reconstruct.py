@@ -432,6 +432,7 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         f"failure metrics: `reconstruction/failures.csv`",
         f"- dense PGO: {_pgo_line(summary.get('pgo'))}",
         f"- free-space check: {_free_space_line(summary.get('free_space'))}",
+        f"- uncertainty trim: {_uncertain_line(summary.get('uncertain'))}",
         "",
         "| stage | time (s) | |",
         "| --- | ---: | --- |",
@@ -455,6 +456,15 @@ def _free_space_line(fs) -> str:
     share = fs["removed"] / fs["triangles"] if fs.get("triangles") else 0.0
     return (f"{fs['removed']} of {fs['triangles']} triangles ({100 * share:.1f} %) removed: surface that most of the "
             f"{fs['frames']} fused frames see through")
+
+
+def _uncertain_line(u) -> str:
+    if not isinstance(u, dict):
+        return "off (fusion.max_std_ratio=null): all fused surface kept, its std in the mesh"
+    share = u["removed"] / u["triangles"] if u.get("triangles") else 0.0
+    ratio = u["threshold"] / u["median_std"] if u.get("median_std") else float("nan")
+    return (f"{u['removed']} of {u['triangles']} triangles ({100 * share:.1f} %) removed: fused std over {ratio:.3g}x "
+            f"the mesh's median")
 
 
 def _pgo_line(pgo: dict | None) -> str:

@@ -695,3 +695,64 @@ def test_saved_mesh_loses_surface_the_other_frames_see_through(cls, tmp_path):
     for bad in (dict(free_space_max_fraction=1.5), dict(free_space_max_fraction="x"), dict(free_space_tau=0.0)):
         with pytest.raises(InputError, match="free_space"):
             cls(voxel, **bad, **kw)
+
+
+# ---------------------------------------------------------------- uncertainty trim of the saved mesh
+def test_drop_uncertain_removes_the_triangles_of_vertices_over_the_ratio():
+    from endorecon.fusion import drop_uncertain
+
+    n = 6
+    grid = _grid_mesh(n)
+    std = np.ones((n * n, 1), np.float32)
+    inner = 2 * n + 3  # an interior vertex: six triangles share it
+    std[inner] = 3.0
+    grid.vertex["std"] = o3d.core.Tensor(std)
+    out, info = drop_uncertain(grid, 2.0)
+    assert len(out.triangle.indices) == len(grid.triangle.indices) - 6
+    assert info == dict(triangles=len(grid.triangle.indices), removed=6, median_std=1.0, threshold=2.0)
+    assert len(out.vertex.positions) == n * n - 1 and out.vertex["std"].numpy().max() == 1.0
+    kept, info = drop_uncertain(grid, 3.0)  # not above the threshold: kept
+    assert kept is grid and info["removed"] == 0
+    std[inner] = np.nan  # a vertex without a finite std goes too
+    grid.vertex["std"] = o3d.core.Tensor(std)
+    assert len(drop_uncertain(grid, 2.0)[0].triangle.indices) == len(grid.triangle.indices) - 6
+    # the threshold is relative: the same mesh in other units loses the same triangles
+    grid.vertex["std"] = o3d.core.Tensor(np.where(np.isfinite(std), std, 3.0) * 250.0)
+    out, info = drop_uncertain(grid, 2.0)
+    assert len(out.triangle.indices) == len(grid.triangle.indices) - 6 and info["median_std"] == 250.0
+    assert drop_uncertain(grid, None) == (grid, None)
+    no_std = _grid_mesh(n)
+    assert drop_uncertain(no_std, 2.0) == (no_std, None)  # plain TSDF meshes have no std
+    for bad in (1.0, 0.5, -2, float("nan"), "x", True):
+        with pytest.raises(InputError, match="max_std_ratio"):
+            drop_uncertain(grid, bad)
+
+
+def test_saved_adaptive_mesh_loses_surface_fused_with_a_large_std(tmp_path):
+    """Four frames see a plane; one half of every frame is fused with 5x the std of the other half.  With
+    max_std_ratio = 2 the saved mesh keeps the confident half only; the extracted mesh keeps both."""
+    from endorecon.fusion import build_fusion
+
+    voxel = 0.02
+    poses = [look_at((0.05 * np.cos(a), 0.05 * np.sin(a), 0.0), (0.0, 0.0, 1.0)) for a in np.linspace(0, 2 * np.pi, 4, endpoint=False)]
+    depths = [plane_depth(T, (0.0, 0.0, 1.0), 1.0) for T in poses]
+    stds = []
+    for _ in poses:
+        s = np.full((H, W), 0.2 * voxel)
+        s[:, : W // 2] *= 5.0
+        stds.append(s)
+    saved = {}
+    for ratio in (None, 2.0):
+        vol = AdaptiveTSDF(voxel, compile=False, max_std_ratio=ratio)
+        integrate_all(vol, depths, stds, poses)
+        saved[ratio] = read_mesh_ply(vol.save_mesh(tmp_path / f"mesh_{ratio}.ply"))
+        assert len(vol.extract_mesh().triangle.indices) == len(saved[None].triangle.indices)
+    assert vol.last_uncertain["removed"] > 0
+    x_all, x_kept = saved[None].vertex.positions.numpy()[:, 0], saved[2.0].vertex.positions.numpy()[:, 0]
+    s_all = saved[None].vertex["std"].numpy().ravel()
+    assert s_all[x_all < -0.05].mean() > 3 * s_all[x_all > 0.05].mean()  # the camera's left half is x < 0
+    assert (x_kept < -0.05).sum() == 0 and (x_kept > 0.05).sum() >= 0.97 * (x_all > 0.05).sum()
+    # the config key reaches the adaptive volume; a bad value stops before any fusion
+    assert build_fusion({"name": "adaptive", "voxel_size": voxel, "max_std_ratio": 2.0}).max_std_ratio == 2.0
+    with pytest.raises(InputError, match="max_std_ratio"):
+        build_fusion({"name": "adaptive", "voxel_size": voxel, "max_std_ratio": 0.5})

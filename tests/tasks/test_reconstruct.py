@@ -265,7 +265,9 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     assert re.search(r"dense PGO: objective -?[\d.e+-]+ -> -?[\d.e+-]+; pose updates [\d.e+-]+° median", report)
     # on by default: what the free-space check removed is in the report and the refine summary
     assert re.search(r"free-space check: \d+ of \d+ triangles \([\d.]+ %\) removed", report)
-    assert json.loads((run_dir / "reconstruction/summary.json").read_text())["free_space"]["triangles"] > 0
+    rec_summary = json.loads((run_dir / "reconstruction/summary.json").read_text())
+    assert rec_summary["free_space"]["triangles"] > 0 and rec_summary["uncertain"]["triangles"] > 0
+    assert re.search(r"uncertainty trim: \d+ of \d+ triangles \([\d.]+ %\) removed: fused std over 2x", report)  # on by default
     first = json.loads((run_dir / "timings.json").read_text())["stages"]
     assert not any(s["skipped"] for s in first.values())
     mesh_bytes = (run_dir / "mesh.ply").read_bytes()
@@ -298,8 +300,10 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     monkeypatch.setattr(R.pipeline, "fuse_sequence", fuse)
     monkeypatch.setattr(endorecon.pgo, "optimize_poses", pgo)
     R.run(recon_cfg(run_dir, f"input={video}", f"intrinsics={camera}", f"ckpt={tiny_ckpt}", "sfm.allow_partial=true",
-                    "fusion.mask_erode_px=4"))
+                    "fusion.mask_erode_px=4", "fusion.max_std_ratio=3"))
     third = json.loads((run_dir / "timings.json").read_text())["stages"]
+    assert re.search(r"uncertainty trim: \d+ of \d+ triangles \([\d.]+ %\) removed: fused std over 3x the mesh's median",
+                     (run_dir / "report.md").read_text())
     assert third["adaptation"]["skipped"] and third["inference"]["skipped"]
     assert not third["failure detection + PGO + fusion"]["skipped"]
     assert (run_dir / "mesh.ply").read_bytes() != mesh_bytes
