@@ -2,7 +2,7 @@
 
 * ``kernel``: the per-voxel maths, pure torch.
 * ``tsdf``: ``AdaptiveTSDF`` / ``PlainTSDF`` volumes on Open3D's VoxelBlockGrid; the saved mesh's boundary
-  trim and (adaptive, opt-in) uncertainty trim.
+  trim and (adaptive fusion) uncertainty trim.
 * ``freespace``: the free-space check of the saved mesh (surface the frames see through).
 * ``ply``: mesh PLY with a per-vertex ``std`` property.
 * ``run``: ``build_fusion(cfg, median_depth)`` and the ``fuse_frames`` stage.

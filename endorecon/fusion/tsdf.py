@@ -167,19 +167,24 @@ def drop_uncertain(mesh: o3d.t.geometry.TriangleMesh, max_std_ratio: float | Non
     """Remove the triangles of ``mesh`` with a vertex whose fused ``std`` exceeds ``max_std_ratio`` x the median
     ``std`` of its vertices (unused vertices go too).  The ratio is scale-free, as SfM units are arbitrary.
 
-    Returns the mesh and what was removed (``triangles``, ``removed``, ``median_std``, ``threshold``); the mesh
-    unchanged and None when ``max_std_ratio`` is None, the mesh is empty or has no ``std``."""
+    Returns the mesh and what was removed (``triangles``, ``removed``, ``median_std``, ``threshold``, ``ratio``);
+    the mesh unchanged and None when ``max_std_ratio`` is None, the mesh is empty or has no ``std``.  A median std
+    that is not positive says nothing about the surface: nothing is removed then (with a warning)."""
     ratio = check_max_std_ratio(max_std_ratio)
     if ratio is None or "indices" not in mesh.triangle or mesh.triangle.indices.shape[0] == 0 or "std" not in mesh.vertex:
         return mesh, None
     std = mesh.vertex["std"].cpu().numpy().reshape(-1).astype(np.float64)
     faces = mesh.triangle.indices.cpu().numpy().astype(np.int64)
     used = np.unique(faces)
-    median = float(np.median(std[used]))
+    median = float(np.nanmedian(std[used])) if np.isfinite(std[used]).any() else float("nan")
+    if not (np.isfinite(median) and median > 0):
+        log.warning("uncertainty trim skipped: the mesh's median std is %s", median)
+        return mesh, dict(triangles=int(len(faces)), removed=0, median_std=median, threshold=float("nan"), ratio=ratio)
     # a vertex without a finite std has no fused support to speak for it
     uncertain = ~np.isfinite(std) | (std > ratio * median)
     keep = ~uncertain[faces].any(axis=1)
-    info = dict(triangles=int(len(faces)), removed=int((~keep).sum()), median_std=median, threshold=ratio * median)
+    info = dict(triangles=int(len(faces)), removed=int((~keep).sum()), median_std=median, threshold=ratio * median,
+                ratio=ratio)
     if keep.all():
         return mesh, info
     return mesh.select_faces_by_mask(o3c.Tensor(keep, device=mesh.device)), info
@@ -360,8 +365,9 @@ class _TSDFBase:
 
         With ``free_space_max_fraction`` set, surface that the fused frames see through goes too
         (:meth:`drop_free_space`); with ``max_std_ratio`` set (adaptive fusion), surface whose fused std is over
-        that many times the median (:meth:`drop_uncertain`); then pieces under ``min_component_fraction`` again.  Only the saved product
-        is trimmed and checked: :meth:`extract_mesh` (simulated depth, failure detection) keeps it all."""
+        that many times the median (:meth:`drop_uncertain`); then pieces under ``min_component_fraction`` again.
+        Only the saved product is trimmed and checked: :meth:`extract_mesh` (simulated depth, failure detection)
+        keeps it all."""
         mesh = self.drop_free_space(trim_boundary(self.extract_mesh(), self.boundary_trim_rings))
         mesh = self.drop_uncertain(mesh)
         # trimming and the free-space check can split pieces off the surface: the size rule holds for the saved mesh too

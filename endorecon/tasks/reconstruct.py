@@ -462,7 +462,7 @@ def _uncertain_line(u) -> str:
     if not isinstance(u, dict):
         return "off (fusion.max_std_ratio=null): all fused surface kept, its std in the mesh"
     share = u["removed"] / u["triangles"] if u.get("triangles") else 0.0
-    ratio = u["threshold"] / u["median_std"] if u.get("median_std") else float("nan")
+    ratio = u.get("ratio", float("nan"))
     return (f"{u['removed']} of {u['triangles']} triangles ({100 * share:.1f} %) removed: fused std over {ratio:.3g}x "
             f"the mesh's median")
 

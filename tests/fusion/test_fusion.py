@@ -709,7 +709,7 @@ def test_drop_uncertain_removes_the_triangles_of_vertices_over_the_ratio():
     grid.vertex["std"] = o3d.core.Tensor(std)
     out, info = drop_uncertain(grid, 2.0)
     assert len(out.triangle.indices) == len(grid.triangle.indices) - 6
-    assert info == dict(triangles=len(grid.triangle.indices), removed=6, median_std=1.0, threshold=2.0)
+    assert info == dict(triangles=len(grid.triangle.indices), removed=6, median_std=1.0, threshold=2.0, ratio=2.0)
     assert len(out.vertex.positions) == n * n - 1 and out.vertex["std"].numpy().max() == 1.0
     kept, info = drop_uncertain(grid, 3.0)  # not above the threshold: kept
     assert kept is grid and info["removed"] == 0
@@ -721,6 +721,10 @@ def test_drop_uncertain_removes_the_triangles_of_vertices_over_the_ratio():
     out, info = drop_uncertain(grid, 2.0)
     assert len(out.triangle.indices) == len(grid.triangle.indices) - 6 and info["median_std"] == 250.0
     assert drop_uncertain(grid, None) == (grid, None)
+    # a median std of 0 (no spread to judge by): nothing goes, and the record says so
+    grid.vertex["std"] = o3d.core.Tensor(np.zeros((n * n, 1), np.float32))
+    kept, info = drop_uncertain(grid, 2.0)
+    assert kept is grid and info["removed"] == 0 and info["median_std"] == 0.0
     no_std = _grid_mesh(n)
     assert drop_uncertain(no_std, 2.0) == (no_std, None)  # plain TSDF meshes have no std
     for bad in (1.0, 0.5, -2, float("nan"), "x", True):
