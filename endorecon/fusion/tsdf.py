@@ -230,6 +230,7 @@ class _TSDFBase:
 
     attributes: tuple[str, ...] = ()
     channels: tuple[int, ...] = ()
+    max_std_ratio: float | None = None  # the uncertainty trim; only AdaptiveTSDF has a std to trim by
 
     def __init__(self, voxel_size: float, block_resolution: int = 8, block_count: int = 20000,
                  depth_max: float = float("inf"), mesh_weight_threshold: float = 1.0, device: str = "CPU:0",
@@ -384,7 +385,7 @@ class _TSDFBase:
     def drop_uncertain(self, mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.TriangleMesh:
         """``mesh`` without its most uncertain surface (:func:`drop_uncertain`, ``self.max_std_ratio``); a volume
         without std (plain TSDF) keeps it all.  What it removed is in ``self.last_uncertain`` and the log."""
-        mesh, self.last_uncertain = drop_uncertain(mesh, getattr(self, "max_std_ratio", None))
+        mesh, self.last_uncertain = drop_uncertain(mesh, self.max_std_ratio)
         if self.last_uncertain and self.last_uncertain["removed"]:
             u = self.last_uncertain
             log.info("uncertainty trim: %d of %d triangles removed (fused std over %.3g = %.3g x the median %.3g)",
