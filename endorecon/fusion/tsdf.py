@@ -176,7 +176,8 @@ def drop_uncertain(mesh: o3d.t.geometry.TriangleMesh, max_std_ratio: float | Non
     std = mesh.vertex["std"].cpu().numpy().reshape(-1).astype(np.float64)
     faces = mesh.triangle.indices.cpu().numpy().astype(np.int64)
     used = np.unique(faces)
-    median = float(np.nanmedian(std[used])) if np.isfinite(std[used]).any() else float("nan")
+    finite = std[used][np.isfinite(std[used])]  # NaN and inf alike: no fused support, so no say in the median
+    median = float(np.median(finite)) if finite.size else float("nan")
     if not (np.isfinite(median) and median > 0):
         log.warning("uncertainty trim skipped: the mesh's median std is %s", median)
         return mesh, dict(triangles=int(len(faces)), removed=0, median_std=median, threshold=float("nan"), ratio=ratio)

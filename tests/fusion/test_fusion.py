@@ -716,6 +716,11 @@ def test_drop_uncertain_removes_the_triangles_of_vertices_over_the_ratio():
     std[inner] = np.nan  # a vertex without a finite std goes too
     grid.vertex["std"] = o3d.core.Tensor(std)
     assert len(drop_uncertain(grid, 2.0)[0].triangle.indices) == len(grid.triangle.indices) - 6
+    # inf as NaN: the vertex goes and has no say in the median (most stds inf: the rest still judged)
+    many_inf = np.where(np.arange(n * n)[:, None] % 3 == 0, 1.0, np.inf).astype(np.float32)
+    grid.vertex["std"] = o3d.core.Tensor(many_inf)
+    _, info = drop_uncertain(grid, 2.0)
+    assert info["median_std"] == 1.0 and info["removed"] > 0
     # the threshold is relative: the same mesh in other units loses the same triangles
     grid.vertex["std"] = o3d.core.Tensor(np.where(np.isfinite(std), std, 3.0) * 250.0)
     out, info = drop_uncertain(grid, 2.0)
