@@ -285,9 +285,9 @@ def detect_failures(
         for s in range(0, len(idx), batch):
             b = idx[s : s + batch]
             valid = sim_valid[b].bool() & mask_b[None] & (sim_n[b] > 0)
-            vals = dense_simulation_loss(depth_n[b], std_n[b], sim_n[b], valid, reduction="none")
-            for f, v, c in zip(b, vals.tolist(), valid.flatten(1).sum(1).tolist()):
-                metrics["dense_simulation"][pos[f]] = v if c >= min_valid else np.nan
+            vals = dense_simulation_loss(depth_n[b], std_n[b], sim_n[b], valid, reduction="none", min_valid=min_valid)
+            for f, v in zip(b, vals.tolist()):  # NaN: fewer than min_valid pixels
+                metrics["dense_simulation"][pos[f]] = v
 
         # Pairs (checked frame, neighbour) for sparse flow and depth consistency.
         pairs = [(i, i + o) for i in idx for o in offsets if 0 <= i + o < N and registered[i + o] and o != 0]
@@ -303,10 +303,14 @@ def detect_failures(
                 d_i, m_i = sim_n[ii], mask_b[None] & sim_valid[ii].bool()
             else:
                 d_i, m_i = depth_n[ii], mask_b[None].expand(len(ii), -1, -1, -1)
-            vals = depth_consistency_loss(d_i, std_n[ii], sim_n[jj], std_n[jj], Kc, T_ji, m_i, reduction="none")
-            counts = m_i.flatten(1).sum(1).tolist()
-            for p, v, c in zip(chunk, vals.tolist(), counts):
-                per_pair["depth_consistency"][p] = v if c >= min_valid and math.isfinite(v) else np.nan
+            # NaN for a pair with too little overlap: the loss counts the pixels it used, which m_i does not
+            # (the warp leaves out what falls outside j or on j's holes), and 0 is no neutral NLL value.
+            vals = depth_consistency_loss(
+                d_i, std_n[ii], sim_n[jj], std_n[jj], Kc, T_ji, m_i, reduction="none",
+                mask_j=mask_b[None].expand(len(jj), -1, -1, -1), min_valid=min_valid,
+            )
+            for p, v in zip(chunk, vals.tolist()):
+                per_pair["depth_consistency"][p] = v if math.isfinite(v) else np.nan
             # Sparse flow, only for pairs that have tracks.
             flows, fvalid, keep = [], [], []
             for k, (i, j) in enumerate(chunk):
@@ -325,7 +329,7 @@ def detect_failures(
             if keep:
                 vals = sparse_flow_loss(
                     depth_n[[ii[k] for k in keep]], std_n[[ii[k] for k in keep]], Kc[keep], T_ji[keep],
-                    torch.stack(flows), torch.stack(fvalid), reduction="none",
+                    torch.stack(flows), torch.stack(fvalid), reduction="none", min_valid=min_valid,
                 )
                 for k, v in zip(keep, vals.tolist()):
                     per_pair["sparse_flow"][chunk[k]] = v

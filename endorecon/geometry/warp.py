@@ -14,6 +14,10 @@ import torch.nn.functional as F
 from endorecon.geometry._checks import check_shape
 from endorecon.geometry.camera import pixel_grid, project, unproject
 
+# Bilinear weight that may fall on pixels without depth before a warped sample counts as invalid
+# (round-off at the image border; the sample is renormalised by the rest).
+SUPPORT_TOL = 1e-3
+
 
 def sample_bilinear(image: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Sample an image at pixel coordinates (pixel-centre convention), bilinear, zeros outside.
@@ -92,13 +96,19 @@ def warp_depth(
         std_j: optional (B, 1, H, W) std of depth_j, propagated linearly.
     Returns:
         depth_j_in_i: (B, 1, H, W), 0 where invalid.
-        valid: (B, 1, H, W) bool: inside j's image, in front of both cameras, both depths > min_depth.
+        valid: (B, 1, H, W) bool: inside j's image, in front of both cameras, both depths > min_depth,
+            j's sample drawn (all but ``SUPPORT_TOL`` of its bilinear weight) from pixels with depth.
         std_j_in_i: (B, 1, H, W) or None.
     """
     B, _, H, W = check_shape(depth_j, "depth_j", (None, 1, None, None))
     check_shape(depth_i, "depth_i", (B, 1, H, W))
     X_j, uv_j, z_j = _points_in_j(depth_i, K, cam_j_from_cam_i)
     d_j, inside = sample_bilinear(depth_j, uv_j)
+    # A sample that blends in a pixel without depth (<= min_depth: a hole, a masked-out pixel) is no
+    # surface: require (almost) all of the bilinear weight on pixels with depth, and renormalise by it.
+    support, _ = sample_bilinear((depth_j > min_depth).to(depth_j.dtype), uv_j)
+    full = support > 1.0 - SUPPORT_TOL
+    d_j = torch.where(full, d_j / torch.where(full, support, torch.ones_like(support)), torch.zeros_like(d_j))
     zj_safe = torch.where(z_j > min_depth, z_j, torch.ones_like(z_j))
     X_j = X_j.transpose(1, 2).view(B, 3, H, W)
     R, t = cam_j_from_cam_i[:, :3, :3], cam_j_from_cam_i[:, :3, 3]
@@ -112,5 +122,6 @@ def warp_depth(
     if std_j is not None:
         check_shape(std_j, "std_j", (B, 1, H, W))
         s_j, _ = sample_bilinear(std_j, uv_j)
+        s_j = s_j / torch.where(full, support, torch.ones_like(support))
         std_out = torch.where(valid, (a * s_j).abs(), torch.zeros_like(s_j))
     return out, valid, std_out

@@ -9,7 +9,8 @@ it shifts every value and no gradient).  eps = 1e-8 keeps it finite at σ = 0.
 Identical x and μ give the minimum over x of 0.5·log(σ² + eps).
 
 Reductions (every loss): ``"none"`` returns (B,): per sample, the mean of the
-per-pixel NLL over its valid pixels (0 where a sample has none);
+per-pixel NLL over its valid pixels (0 where a sample has none, NaN where it has
+fewer than ``min_valid`` when that is given: a check must not read "no overlap" as a value);
 ``"mean"`` returns a scalar: the sum over every valid pixel of the batch divided
 by their number (0 if none).  Invalid pixels never contribute, neither to the
 value nor to the gradient, even if they hold NaN or inf: inputs are replaced by
@@ -35,15 +36,17 @@ def _safe(x: torch.Tensor, valid: torch.Tensor, fill: float) -> torch.Tensor:
     return torch.where(valid, x, torch.full_like(x, fill))
 
 
-def _reduce(per_pixel: torch.Tensor, valid: torch.Tensor, reduction: str) -> torch.Tensor:
-    """per_pixel, valid: (B, 1, H, W) -> scalar ("mean") or (B,) ("none")."""
+def _reduce(per_pixel: torch.Tensor, valid: torch.Tensor, reduction: str, min_valid: int = 0) -> torch.Tensor:
+    """per_pixel, valid: (B, 1, H, W) -> scalar ("mean") or (B,) ("none"; NaN where a sample has fewer
+    than ``min_valid`` valid pixels)."""
     if reduction not in _REDUCTIONS:
         raise ValueError(f"reduction must be one of {_REDUCTIONS}, got {reduction!r}")
     v = valid.to(per_pixel.dtype)
     total = (per_pixel * v).flatten(1).sum(1)
     count = v.flatten(1).sum(1)
     if reduction == "none":
-        return total / count.clamp(min=1)
+        out = total / count.clamp(min=1)
+        return torch.where(count < min_valid, torch.full_like(out, float("nan")), out) if min_valid > 0 else out
     return total.sum() / count.sum().clamp(min=1)
 
 
@@ -60,7 +63,13 @@ def _check_map(x: torch.Tensor, name: str, ref: tuple, channels: int = 1) -> Non
 
 
 def _pixel_nll(
-    depth: torch.Tensor, std: torch.Tensor, obs: torch.Tensor, obs_valid: torch.Tensor, eps: float, reduction: str
+    depth: torch.Tensor,
+    std: torch.Tensor,
+    obs: torch.Tensor,
+    obs_valid: torch.Tensor,
+    eps: float,
+    reduction: str,
+    min_valid: int = 0,
 ) -> torch.Tensor:
     shape = check_shape(depth, "depth", (None, 1, None, None))
     _check_map(std, "std", shape)
@@ -68,7 +77,7 @@ def _pixel_nll(
     _check_map(obs_valid, "observed validity", shape)
     valid = obs_valid.bool() & torch.isfinite(obs) & torch.isfinite(depth) & torch.isfinite(std)
     nll = gaussian_nll(_safe(obs, valid, 1.0), _safe(depth, valid, 1.0), _safe(std, valid, 1.0) ** 2, eps)
-    return _reduce(nll, valid, reduction)
+    return _reduce(nll, valid, reduction, min_valid)
 
 
 def sparse_depth_loss(
@@ -97,6 +106,7 @@ def dense_simulation_loss(
     sim_valid: torch.Tensor,
     eps: float = 1e-8,
     reduction: str = "mean",
+    min_valid: int = 0,
 ) -> torch.Tensor:
     """Dense Simulation loss: NLL of the depth rendered from the previous iteration's mesh.
 
@@ -108,7 +118,7 @@ def dense_simulation_loss(
     Returns:
         scalar ("mean") or (B,) ("none").
     """
-    return _pixel_nll(depth, std, sim_depth, sim_valid, eps, reduction)
+    return _pixel_nll(depth, std, sim_depth, sim_valid, eps, reduction, min_valid)
 
 
 def _check_pair(depth_i, std_i, depth_j, std_j, mask_i) -> tuple:
@@ -118,10 +128,13 @@ def _check_pair(depth_i, std_i, depth_j, std_j, mask_i) -> tuple:
     return shape
 
 
-def _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i):
-    """Non-finite values set to 0 (= invalid to the warp); returns m_i, d_i, d_j, s_j."""
+def _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i, mask_j):
+    """Non-finite values, and j's outside ``mask_j``, set to 0 (= invalid to the warp, which also refuses a
+    sample that blends them in); returns m_i, d_i, d_j, s_j."""
     m_i = mask_i.bool() & torch.isfinite(depth_i) & torch.isfinite(std_i)
     ok_j = torch.isfinite(depth_j) & torch.isfinite(std_j)
+    if mask_j is not None:
+        ok_j = ok_j & mask_j.bool()
     return m_i, _safe(depth_i, m_i, 0.0), _safe(depth_j, ok_j, 0.0), _safe(std_j, ok_j, 0.0)
 
 
@@ -133,6 +146,7 @@ def carried_std(
     K: torch.Tensor,
     cam_j_from_cam_i: torch.Tensor,
     mask_i: torch.Tensor,
+    mask_j: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Frame j's depth std carried into frame i's pixels at the pose ``cam_j_from_cam_i``, for
     :func:`depth_consistency_loss`'s ``std_j_in_i``.
@@ -148,7 +162,9 @@ def carried_std(
     """
     shape = _check_pair(depth_i, std_i, depth_j, std_j, mask_i)
     check_shape(cam_j_from_cam_i, "cam_j_from_cam_i", (shape[0], 4, 4))
-    m_i, d_i, d_j, s_j = _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i)
+    if mask_j is not None:
+        _check_map(mask_j, "mask_j", depth_i.shape)
+    m_i, d_i, d_j, s_j = _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i, mask_j)
     _, valid, std_w = warp_depth(d_j, d_i, K, cam_j_from_cam_i.to(d_i.dtype), std_j=s_j)
     return torch.where(valid, std_w, _safe(std_i, m_i, 0.0))
 
@@ -165,13 +181,17 @@ def depth_consistency_loss(
     reduction: str = "mean",
     std_pose: torch.Tensor | None = None,
     std_j_in_i: torch.Tensor | None = None,
+    mask_j: torch.Tensor | None = None,
+    min_valid: int = 0,
 ) -> torch.Tensor:
     """Depth Consistency loss: frame j's depth warped into i vs frame i's depth.
 
     ``geometry.warp_depth`` expresses j's surface in i at i's pixels and carries
     std_j along linearly; the NLL uses μ = depth_i, x = warped depth_j and
-    σ² = std_i² + std_j,warped², over the warp's valid overlap ∧ mask_i.
-    Non-finite depth values are set to 0 (= invalid to the warp) first.
+    σ² = std_i² + std_j,warped², over the warp's valid overlap ∧ mask_i, where the
+    overlap needs j's sample drawn from pixels inside ``mask_j`` (j's depth outside its
+    endoscope mask is unconstrained output).  Non-finite depth values are set to 0
+    (= invalid to the warp) first.
 
     Args:
         depth_i, std_i, depth_j, std_j: (B, 1, H, W) scaled predictions.
@@ -183,6 +203,8 @@ def depth_consistency_loss(
             agree exactly at a pose make that pose a stationary point).
         std_j_in_i: optional (B, 1, H, W) std_j already carried into i (:func:`carried_std` at std_pose), so that
             a caller evaluating many poses computes it once; excludes ``std_pose``.
+        mask_j: optional (B, 1, H, W) bool, frame j's valid pixels (None: every pixel with finite depth).
+        min_valid: with ``reduction="none"``, NaN for a sample with fewer valid pixels (0: 0 for none).
     Returns:
         scalar ("mean") or (B,) ("none").
     """
@@ -191,17 +213,19 @@ def depth_consistency_loss(
         raise ValueError("pass std_pose or std_j_in_i (carried_std at std_pose), not both")
     if std_pose is not None:
         check_shape(std_pose, "std_pose", (shape[0], 4, 4))
-        std_j_in_i = carried_std(depth_i, std_i, depth_j, std_j, K, std_pose.detach(), mask_i)
+        std_j_in_i = carried_std(depth_i, std_i, depth_j, std_j, K, std_pose.detach(), mask_i, mask_j)
     if std_j_in_i is not None:
         _check_map(std_j_in_i, "std_j_in_i", shape)
-    m_i, d_i, d_j, s_j = _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i)
+    if mask_j is not None:
+        _check_map(mask_j, "mask_j", shape)
+    m_i, d_i, d_j, s_j = _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i, mask_j)
     warped, valid, std_w = warp_depth(d_j, d_i, K, cam_j_from_cam_i, std_j=s_j if std_j_in_i is None else None)
     valid = valid & m_i
     if std_j_in_i is not None:
         std_w = std_j_in_i.to(d_i.dtype)
     var = _safe(std_i, valid, 1.0) ** 2 + _safe(std_w, valid, 0.0) ** 2
     nll = gaussian_nll(_safe(warped, valid, 1.0), _safe(d_i, valid, 1.0), var, eps)
-    return _reduce(nll, valid, reduction)
+    return _reduce(nll, valid, reduction, min_valid)
 
 
 def flow_depth_derivative(
@@ -256,7 +280,7 @@ def propagated_flow_std(
     _, z_j = flow_from_depth(d, K, T)
     ok = ok & (z_j > min_depth)
     jac = flow_depth_derivative(d, K, T, _safe(z_j, ok, 1.0)) / _image_size(shape, d)
-    sigma = jac * _safe(std_i, ok, 1.0)
+    sigma = (jac * _safe(std_i, ok, 1.0)).abs()
     return torch.where(ok, sigma, torch.full_like(sigma, float("nan")))
 
 
@@ -278,6 +302,7 @@ def sparse_flow_loss(
     min_depth: float = 1e-6,
     std_pose: torch.Tensor | None = None,
     flow_std_ij: torch.Tensor | None = None,
+    min_valid: int = 0,
 ) -> torch.Tensor:
     """Sparse Flow loss: flow implied by the predicted depth and the relative pose vs SfM flow.
 
@@ -300,6 +325,7 @@ def sparse_flow_loss(
             Points behind camera j at std_pose are left out.
         flow_std_ij: optional (B, 2, H, W) flow std already propagated (:func:`propagated_flow_std` at std_pose;
             NaN = left out), so that a caller evaluating many poses computes it once; excludes ``std_pose``.
+        min_valid: with ``reduction="none"``, NaN for a sample with fewer valid points (0: 0 for none).
     Returns:
         scalar ("mean") or (B,) ("none").
     """
@@ -336,7 +362,7 @@ def sparse_flow_loss(
     obs = _safe(sparse_flow_ij, valid.expand(-1, 2, -1, -1), 0.0) / size
     nll = gaussian_nll(obs, flow / size, var, eps).sum(1, keepdim=True)
     nll = _safe(nll, valid, 0.0)  # pixels that fail only the z_j test may be non-finite
-    return _reduce(nll, valid, reduction)
+    return _reduce(nll, valid, reduction, min_valid)
 
 
 def sparse_flow_loss_points(

@@ -219,7 +219,8 @@ class DepthModule(L.LightningModule):
         out = {
             "sparse_depth": sparse_depth_loss(depth, std, sparse_depth, sparse_valid, self.eps),
             "depth_consistency": depth_consistency_loss(
-                depth, std, torch.cat([d_j, d_i]), torch.cat([s_j, s_i]), K, T, mask, self.eps
+                depth, std, torch.cat([d_j, d_i]), torch.cat([s_j, s_i]), K, T, mask, self.eps,
+                mask_j=torch.cat([mask[B:], mask[:B]]),
             ),
             "sparse_flow": sparse_flow_loss(
                 depth, std, K, T,

@@ -158,7 +158,7 @@ class _Edges:
                 ii, jj, T_ji0 = self._pairs(ks, T0)
                 m = mask[None].expand(len(ks), -1, -1, -1)
                 if cache_cons:
-                    cons.append(carried_std(depth[ii], std[ii], depth[jj], std[jj], K[ii], T_ji0, m))
+                    cons.append(carried_std(depth[ii], std[ii], depth[jj], std[jj], K[ii], T_ji0, m, m))
                 fs = propagated_flow_std(depth[ii], std[ii], K[ii], T_ji0).flatten(2)
                 X = unproject(depth[ii], K[ii]).flatten(2) if at_points else None
                 for b, k in enumerate(ks):
@@ -212,7 +212,9 @@ def _edge_losses(xi, T0, depth, std, K, mask, E: _Edges, ks, w_flow, w_cons):
         carried = {"std_j_in_i": E.cons_std[ks]}
     else:
         carried = {"std_pose": T_ji0} if frozen else {}
-    cons = depth_consistency_loss(depth[ii], std[ii], depth[jj], std[jj], Kb, T_ji, m, reduction="none", **carried)
+    cons = depth_consistency_loss(
+        depth[ii], std[ii], depth[jj], std[jj], Kb, T_ji, m, reduction="none", mask_j=m, **carried
+    )
     out = w_cons * cons
     if E.points is not None:  # the sparse points only; an edge without flow has none valid and costs 0
         X, uv, flow, flow_std, ok = (t[ks] for t in E.points)

@@ -97,6 +97,21 @@ def test_depth_consistency_on_simulated_depth_reacts_to_pose_error(scene):
     assert net_src.metrics["depth_consistency"][kd] > 2.0
 
 
+def test_a_neighbour_without_simulated_depth_does_not_hide_a_failure(scene):
+    # A pair without overlap used to score 0 (not NaN), and the min over neighbours took it.
+    sim = scene.render(scene.cam_from_world)
+    T = corrupt_pose(scene.cam_from_world, BAD_POSE, [0.0, 0.0, 0.2, 0.0, 0.0, 0.0])
+    sim_empty = sim.clone()
+    sim_empty[BAD_POSE + 5] = 0.0
+    with_all = detect(scene, scene.depth, sim, T, rel_std=0.01)
+    one_empty = detect(scene, scene.depth, sim_empty, T, rel_std=0.01)
+    k = list(with_all.frames).index(BAD_POSE)
+    assert list(one_empty.frames) == list(with_all.frames)
+    assert one_empty.metrics["depth_consistency"][k] > 2.0
+    assert one_empty.metrics["depth_consistency"][k] == pytest.approx(with_all.metrics["depth_consistency"][k], rel=0.2)
+    assert BAD_POSE in one_empty.flagged_frames
+
+
 def test_metrics_are_scale_invariant_with_normalisation(scene):
     s = 50.0  # e.g. millimetres instead of normalised SfM units
     T = corrupt_pose(scene.cam_from_world, BAD_POSE, [0.04, 0.0, 0.02, 0.0, 0.04, 0.0])

@@ -63,6 +63,20 @@ def test_warp_depth_detects_offset():
     assert torch.allclose(warped[valid], torch.full_like(warped[valid], 3.2))
 
 
+def test_warp_depth_refuses_a_sample_that_blends_in_a_pixel_without_depth():
+    # j's depth is 0 (a hole, or outside its mask) from column 8 on; i's pixels land half-way between j's
+    # columns, so the sample next to the hole would read half the true depth.
+    depth_i = torch.full((1, 1, H, W), 2.0, dtype=D)
+    depth_j = depth_i.clone()
+    depth_j[..., 8:] = 0.0
+    T = translation([0.05, 0.0, 0.0])  # flow = 20 * 0.05 / 2 = +0.5 px
+    warped, valid, std_w = warp_depth(depth_j, depth_i, K_(), T, std_j=torch.full_like(depth_j, 0.1))
+    # pixel u of i lands at u + 0.5 in j: columns 0-6 sample only j's columns 0-7.
+    assert valid[0, 0, :, :7].all() and not valid[0, 0, :, 7:].any()
+    assert torch.allclose(warped[valid], depth_i[valid])
+    assert torch.allclose(std_w[valid], torch.full_like(std_w[valid], 0.1))
+
+
 def test_warp_gradcheck():
     depth_i = (torch.rand(1, 1, 4, 5, dtype=D) * 0.1 + 3.0).requires_grad_()
     depth_j = (torch.rand(1, 1, 4, 5, dtype=D) * 0.1 + 3.0).requires_grad_()

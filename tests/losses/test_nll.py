@@ -149,6 +149,57 @@ def test_depth_consistency_mask_and_nan():
     assert torch.isfinite(d_i.grad).all() and (d_i.grad[~mask] == 0).all()
 
 
+def test_depth_consistency_leaves_out_js_depth_outside_mask_j():
+    """j's depth outside its mask is unconstrained network output: with mask_j it changes nothing."""
+    depth = torch.full((1, 1, H, W), 4.0, dtype=torch.float64)
+    std = torch.full_like(depth, 0.3)
+    T, K = _pose(tx=-0.5), _K()  # i's pixels move 14 * 0.5 / 4 = 1.75 px left in j, onto j's masked columns
+    mask = torch.ones(1, 1, H, W, dtype=torch.bool)
+    mask[..., :3] = False
+    garbage = depth.clone()
+    garbage[..., :3] = 50.0
+    clean = depth_consistency_loss(depth, std, depth, std, K, T, mask, reduction="none", mask_j=mask)
+    with_garbage = depth_consistency_loss(depth, std, garbage, std, K, T, mask, reduction="none", mask_j=mask)
+    assert clean.item() == pytest.approx(0.5 * math.log(0.18 + 1e-8), rel=1e-9)
+    torch.testing.assert_close(with_garbage, clean)
+    # Without mask_j the garbage is read (the previous behaviour of the training loss).
+    assert depth_consistency_loss(depth, std, garbage, std, K, T, mask, reduction="none").item() > 10
+    c_clean = carried_std(depth, std, depth, std, K, T, mask, mask)
+    std_garbage = std.clone()
+    std_garbage[..., :3] = 2.0
+    c_garbage = carried_std(depth, std, garbage, std_garbage, K, T, mask, mask)
+    torch.testing.assert_close(c_garbage[mask], c_clean[mask])
+
+
+def test_min_valid_gives_nan_instead_of_zero_for_too_little_overlap():
+    d = torch.full((2, 1, H, W), 4.0, dtype=torch.float64)
+    s = torch.full_like(d, 0.3)
+    T, K = _pose(tx=0.5, B=2), _K(2)
+    mask = torch.ones(2, 1, H, W, dtype=torch.bool)
+    hole = d.clone()
+    hole[1] = 0.0  # the second pair has no depth in j at all: no overlap
+    plain = depth_consistency_loss(d, s, hole, s, K, T, mask, reduction="none")
+    assert plain[1].item() == 0.0  # the default: 0 for none (pose graph optimisation sums edges)
+    checked = depth_consistency_loss(d, s, hole, s, K, T, mask, reduction="none", min_valid=10)
+    assert checked[0].item() == pytest.approx(plain[0].item()) and math.isnan(checked[1].item())
+    # the count is of the pixels the loss used, not of mask_i: i's pixels that leave j's image are not in it
+    overlap = depth_consistency_loss(d, s, d, s, K, T, mask, reduction="none", min_valid=H * W)
+    assert torch.isnan(overlap).all()
+    sim_valid = torch.zeros_like(mask)
+    sim_valid[0, :, :2, :2] = True
+    dense = dense_simulation_loss(d, s, d, sim_valid, reduction="none", min_valid=4)
+    assert math.isfinite(dense[0].item()) and math.isnan(dense[1].item())
+    flow, _ = flow_from_depth(d, K, T)
+    fl = sparse_flow_loss(d, s, K, T, flow, sim_valid, reduction="none", min_valid=5)
+    assert torch.isnan(fl).all()
+
+
+def test_propagated_flow_std_is_non_negative():
+    d = torch.rand(1, 1, H, W, dtype=torch.float64) * 3 + 1
+    sigma = propagated_flow_std(d, 0.1 * d, _K(), _pose(tx=-0.4, tz=0.3, angle=0.1))
+    assert (sigma[torch.isfinite(sigma)] >= 0).all() and torch.isfinite(sigma).any()
+
+
 def test_depth_consistency_gradcheck_including_pose():
     g = torch.Generator().manual_seed(5)
     h, w = 6, 8
