@@ -49,6 +49,8 @@ def read_intrinsics(path: Path) -> np.ndarray:
         raise InputError(f"bad number in intrinsics ({e})", path) from e
     if len(vals) == 0 or len(vals) % 4:
         raise InputError(f"expected groups of 4 numbers (fx fy cx cy), got {len(vals)}", path)
+    if not np.isfinite(vals).all():
+        raise InputError("intrinsics are not finite (inf or nan)", path, "write fx fy cx cy (COLMAP convention)")
     per_view = vals.reshape(-1, 4)
     if not np.allclose(per_view, per_view[0]):
         raise InputError("views have different intrinsics; endorecon needs one camera per sequence", path)
@@ -124,8 +126,12 @@ def read_view_indexes_per_point(path: Path) -> list[list[int]]:
     return points
 
 
-def load_original(folder: str | Path, name: str | None = None, patient: int | None = None) -> Sequence:
+def load_original(folder: str | Path, name: str | None = None, patient: int | None = None,
+                  sfm: bool = True) -> Sequence:
     """Import a sequence in the original method's format (see the module docstring).
+
+    With ``sfm=False`` only the frames, intrinsics and mask are read (a new video in that format, which
+    ``reconstruct.py`` runs SfM on itself): no poses or points are needed then.
 
     Returns:
         Sequence(source="original", units="sfm") with pixel-centre intrinsics, cam_from_world per registered
@@ -165,6 +171,9 @@ def load_original(folder: str | Path, name: str | None = None, patient: int | No
                              "all frames of a sequence must have the same size")
     K = read_intrinsics(folder / "camera_intrinsics_per_view")
     mask = read_mask(folder / "undistorted_mask.bmp", expect_hw=(height, width))
+    if not sfm:
+        return Sequence(name=name or folder.name, frame_paths=frames, intrinsics=K, height=height, width=width,
+                        mask=mask, units="sfm", source="original", patient=patient)
 
     visible = _read_ints(folder / "visible_view_indexes")
     world_from_cam = read_motion_yaml(folder / "motion.yaml")

@@ -25,6 +25,9 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -186,8 +189,8 @@ class Sequence:
                 patient=meta["patient"],
                 native_window=None if meta.get("native_window") is None else tuple(meta["native_window"]),
             )
-        except (KeyError, ValueError, OSError) as e:
-            raise InputError(f"corrupt sequence record ({e})", path, "delete it and rerun the stage that wrote it") from e
+        except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+            raise InputError(f"corrupt sequence record ({type(e).__name__}: {e})", path, "delete it and rerun the stage that wrote it") from e
 
 
 @dataclasses.dataclass
@@ -252,12 +255,18 @@ def read_mask(path: str | Path, expect_hw: tuple[int, int] | None = None) -> np.
     return mask
 
 
+def natural_key(path: Path) -> list:
+    """Sort key that orders numbered names by number (``frame_2`` before ``frame_10``), not as text."""
+    return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", path.name)]
+
+
 def list_frames(frames_dir: str | Path) -> list[Path]:
-    """Sorted image files of a directory; a clear error if there are none."""
+    """Image files of a directory in natural order (numbers by value); a clear error if there are none."""
     frames_dir = Path(frames_dir)
     if not frames_dir.is_dir():
         raise InputError("frames directory does not exist", frames_dir, "pass the folder that holds the frames")
-    paths = sorted(p for p in frames_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
+    paths = sorted((p for p in frames_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")),
+                   key=natural_key)
     if not paths:
         raise InputError(
             f"no images ({', '.join(IMAGE_SUFFIXES)}) in directory", frames_dir, "pass the folder that holds the frames"

@@ -144,13 +144,21 @@ def read_intrinsics(path: str | Path, pixel_origin: str = "corner") -> np.ndarra
     return K
 
 
+# How far from the image centre the principal point may lie, as a fraction of each side.  Endoscopes put it
+# near the centre (the sinus clip: 5 % off); a K for twice the resolution puts it ~0.4-0.5 of a side off.
+MAX_PRINCIPAL_OFFSET = 0.25
+
+
 def check_intrinsics_fit(K: np.ndarray, height: int, width: int, path: str | Path | None = None) -> None:
-    """The principal point must lie inside the frames: a K for another resolution is the usual mistake."""
+    """The principal point must lie near the frames' centre (pixel-centre K): a K for another resolution
+    is the usual mistake, and one for twice the resolution still puts (cx, cy) inside the frames."""
     cx, cy = K[0, 2], K[1, 2]
-    if not (0 <= cx < width and 0 <= cy < height):
-        raise InputError(f"principal point ({cx:.1f}, {cy:.1f}) is outside the {width}x{height} frames: the "
-                         "intrinsics are for another resolution", path,
-                         f"give fx fy cx cy in pixels of the {width}x{height} frames")
+    off_x, off_y = abs(cx - (width - 1) / 2) / width, abs(cy - (height - 1) / 2) / height
+    if not (0 <= cx < width and 0 <= cy < height) or max(off_x, off_y) > MAX_PRINCIPAL_OFFSET:
+        raise InputError(f"principal point ({cx:.1f}, {cy:.1f}) is {max(off_x, off_y):.0%} of the frame off the "
+                         f"centre of the {width}x{height} frames (at most {MAX_PRINCIPAL_OFFSET:.0%} expected): the "
+                         "intrinsics are probably for another resolution", path,
+                         f"give fx fy cx cy in pixels of the {width}x{height} frames (scale them by the resize)")
 
 
 def estimate_mask(frames: list[np.ndarray], threshold: float = 0.06, erode: int = 3) -> np.ndarray:

@@ -109,6 +109,10 @@ def read_mesh_ply(path: str | Path) -> o3d.t.geometry.TriangleMesh:
             fields.append((tok[2], ptype[tok[1]]))
     vdt = np.dtype(fields)
     off = end + len(b"end_header\n")
+    need = off + nv * vdt.itemsize + nf * 13  # each face: a uchar count and three int32 indices
+    if len(data) < need:
+        raise InputError(f"PLY is truncated: {len(data)} bytes, its header announces {need} ({nv} vertices, "
+                         f"{nf} faces)", path, fix="the file was cut (disk full, copy interrupted): make it again")
     vert = np.frombuffer(data, dtype=vdt, count=nv, offset=off)
     face = np.frombuffer(data, dtype=np.dtype([("n", "u1"), ("i", "<i4", (3,))]), count=nf, offset=off + nv * vdt.itemsize)
     mesh = o3d.t.geometry.TriangleMesh()

@@ -101,6 +101,15 @@ def build_fusion(cfg_fusion, median_depth: float | None = None) -> AdaptiveTSDF 
     raise InputError(f"unknown fusion.name {name!r}", fix="use fusion=adaptive or fusion=plain")
 
 
+def _check_frame_keys(frame: dict, n: int, cfg_fusion) -> None:
+    adaptive = _get(cfg_fusion, "name", FUSION_DEFAULTS["name"]) == "adaptive"
+    keys = ("depth", "color", "K", "cam_from_world") + (("std",) if adaptive else ())
+    for key in keys:
+        if key not in frame:
+            raise InputError(f"fusion: frame {n} has no {key!r}",
+                             fix="yield dicts with depth, std, color, K, cam_from_world, mask")
+
+
 def fuse_frames(cfg_fusion, frames_iter: Iterable[Mapping], out_path: str | Path,
                 median_depth: float | None = None, total: int | None = None) -> Path:
     """Fuse every frame of ``frames_iter`` and write the mesh to ``out_path`` (PLY, atomic).
@@ -128,6 +137,7 @@ def fuse_frames(cfg_fusion, frames_iter: Iterable[Mapping], out_path: str | Path
         first = next(it)
     except StopIteration:
         raise InputError("fusion: no frames to fuse", out_path, fix="check the failure flags / registered frames") from None
+    _check_frame_keys(first, 0, cfg_fusion)
     if median_depth is None:
         median_depth = median_valid_depth(first["depth"], first.get("mask"))
     volume = build_fusion(cfg_fusion, median_depth)
@@ -136,9 +146,7 @@ def fuse_frames(cfg_fusion, frames_iter: Iterable[Mapping], out_path: str | Path
     with Progress(TextColumn("fusion"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True) as bar:
         task = bar.add_task("fuse", total=total)
         for fr in chain([first], it):
-            for key in ("depth", "color", "K", "cam_from_world"):
-                if key not in fr:
-                    raise InputError(f"fusion: frame {n} has no {key!r}", fix="yield dicts with depth, std, color, K, cam_from_world, mask")
+            _check_frame_keys(fr, n, cfg_fusion)
             volume.integrate(fr["depth"], fr.get("std"), fr["color"], fr["K"], fr["cam_from_world"], fr.get("mask"))
             n += 1
             bar.advance(task)

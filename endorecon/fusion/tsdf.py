@@ -288,8 +288,7 @@ class _TSDFBase:
         depth = depth.to(dev, torch.float32).contiguous()
         if std is not None:
             std = _as_array(std, "std", (2, 3), "(H, W)")
-            if std.numel() != H * W:
-                raise InputError(f"fusion: std has shape {tuple(std.shape)}, depth is {(H, W)}")
+            _check_map_shape(std, "std", H, W)
             std = std.to(dev, torch.float32).reshape(H, W).contiguous()
         if color is None:
             color = torch.full((H, W, 3), 0.5, dtype=torch.float32, device=dev)
@@ -301,14 +300,14 @@ class _TSDFBase:
             color = color.to(dev, torch.float32).contiguous()
         if mask is not None:
             mask = _as_array(mask, "mask", (2, 3), "(H, W)")
-            if mask.numel() != H * W:
-                raise InputError(f"fusion: mask has shape {tuple(mask.shape)}, depth is {(H, W)}")
+            _check_map_shape(mask, "mask", H, W)
             mask = mask.reshape(H, W).to(dev).bool().contiguous()
         if self.mask_erode_px > 0:
             full = torch.ones(H, W, dtype=torch.bool, device=dev)
             mask = erode_mask(full if mask is None else mask, self.mask_erode_px).contiguous()
-        K = np.asarray(K.cpu() if isinstance(K, torch.Tensor) else K, dtype=np.float64)
-        T = np.asarray(cam_from_world.cpu() if isinstance(cam_from_world, torch.Tensor) else cam_from_world, dtype=np.float64)
+        K = np.asarray(K.detach().cpu() if isinstance(K, torch.Tensor) else K, dtype=np.float64)
+        T = np.asarray(cam_from_world.detach().cpu() if isinstance(cam_from_world, torch.Tensor) else cam_from_world,
+                       dtype=np.float64)
         if K.shape != (3, 3):
             raise InputError(f"fusion: K has shape {K.shape}, expected (3, 3)")
         if T.shape != (4, 4):
@@ -381,7 +380,10 @@ class _TSDFBase:
 
     def _remember(self, depth: torch.Tensor, mask: torch.Tensor | None, K: np.ndarray, T: np.ndarray) -> None:
         if self.free_space_max_fraction is not None:
-            self._seen.append((depth.clone(), None if mask is None else mask.clone(), K, T))  # the caller may reuse its arrays
+            # the caller may reuse its arrays; a frame without a mask keeps every pixel (so that the others' masks
+            # still count in the free-space check)
+            keep = torch.ones_like(depth, dtype=torch.bool) if mask is None else mask.clone()
+            self._seen.append((depth.clone(), keep, K, T))
 
     def drop_uncertain(self, mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.TriangleMesh:
         """``mesh`` without its most uncertain surface (:func:`drop_uncertain`, ``self.max_std_ratio``); a volume
@@ -404,8 +406,7 @@ class _TSDFBase:
             return mesh
         pos = _torch_view(mesh.vertex.positions).to(torch.float64)
         depth = torch.stack([d for d, _, _, _ in self._seen])
-        masks = [m for _, m, _, _ in self._seen]
-        mask = None if any(m is None for m in masks) else torch.stack(masks)
+        mask = torch.stack([m for _, m, _, _ in self._seen])
         K = torch.as_tensor(np.stack([k for _, _, k, _ in self._seen]))
         T = torch.as_tensor(np.stack([t for _, _, _, t in self._seen]))
         on, through = free_space_counts(pos, depth, K, T, mask, self.free_space_tau)
@@ -522,7 +523,7 @@ class AdaptiveTSDF(_TSDFBase):
         if bc.shape[0] == 0:
             return
         hm = self.vbg.hashmap()
-        hm.activate(bc)
+        new_buf, new_mask = hm.activate(bc)
         buf, _ = hm.find(bc)
         idx = _torch_view(buf).long()
         keys = _torch_view(bc)
@@ -532,6 +533,12 @@ class AdaptiveTSDF(_TSDFBase):
         weight_all = _torch_view(self.vbg.attribute("weight")).view(-1, R)
         std_all = _torch_view(self.vbg.attribute("std")).view(-1, R)
         color_all = _torch_view(self.vbg.attribute("color")).view(-1, R, 3)
+        # Open3D does not clear a newly activated block's buffer (a reused slot keeps its old values): the
+        # kernel takes weight 0 as "never observed", so a new block must start at zero.
+        fresh = _torch_view(new_buf).long()[_torch_view(new_mask).bool()]
+        if fresh.numel():
+            for a in (tsdf_all, weight_all, std_all, color_all):
+                a[fresh] = 0
         Kt = torch.as_tensor(K, dtype=torch.float32, device=self.tdevice)
         Tt = torch.as_tensor(T, dtype=torch.float32, device=self.tdevice)
         if return_rate:
@@ -591,6 +598,13 @@ class AdaptiveTSDF(_TSDFBase):
         return out
 
 
+def _check_map_shape(x: torch.Tensor, name: str, H: int, W: int) -> None:
+    """(H, W), (1, H, W) or (H, W, 1): a (W, H) map has as many elements but would be scrambled by a reshape."""
+    if tuple(x.shape) not in ((H, W), (1, H, W), (H, W, 1)):
+        raise InputError(f"fusion: {name} has shape {tuple(x.shape)}, depth is {(H, W)}",
+                         fix=f"pass {name} as (H, W) like depth")
+
+
 class PlainTSDF(_TSDFBase):
     """Baseline: Open3D's ``VoxelBlockGrid.integrate`` (truncation ``trunc_voxels`` voxels, running average).
 
@@ -624,12 +638,22 @@ class PlainTSDF(_TSDFBase):
         depth, _, color, widest = clean_frame(depth, None, color, mask, self._params)
         if float(widest) <= 0:
             return
-        img = o3d.t.geometry.Image(_o3c_from_torch(depth))
-        bc = self._touch_blocks(depth, K, T, self.trunc_voxels, img)
+        bc = self._touch_blocks(depth, K, T, self.trunc_voxels, o3d.t.geometry.Image(_o3c_from_torch(depth)))
         if bc.shape[0] == 0:
             return
-        Kc = o3c.Tensor(self._corner_K(K))
-        self.vbg.integrate(bc, img, o3d.t.geometry.Image(_o3c_from_torch(color)), Kc, Kc, o3c.Tensor(T), 1.0,
+        # Open3D's bound check takes u <= W-1 in corner coordinates, so the last column / row (u in [W-1, W)) was
+        # never fused, and column / row 0 came back at u = -1e-7 from its unproject-project round trip, which
+        # fused depth without colour.  One pixel of padding all round (no depth; edge colour) and the principal
+        # point moved with it fuse every pixel, each with its colour.
+        depth_p = torch.nn.functional.pad(depth[None, None], (1, 1, 1, 1))[0, 0].contiguous()
+        color_p = torch.nn.functional.pad(color.permute(2, 0, 1)[None], (1, 1, 1, 1), mode="replicate")[0]
+        color_p = color_p.permute(1, 2, 0).contiguous()
+        K_p = K.copy()
+        K_p[0, 2] += 1.0
+        K_p[1, 2] += 1.0
+        Kc = o3c.Tensor(self._corner_K(K_p))
+        self.vbg.integrate(bc, o3d.t.geometry.Image(_o3c_from_torch(depth_p)),
+                           o3d.t.geometry.Image(_o3c_from_torch(color_p)), Kc, Kc, o3c.Tensor(T), 1.0,
                            self._o3d_depth_max, self.trunc_voxels)
 
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import io
 import json
 import logging
 import shutil
@@ -156,11 +157,21 @@ def configured_mesh(cfg: DictConfig, mesh_path: Path, out_dir: Path) -> Path:
             log.warning("%s was saved with %d boundary rings trimmed, more than the %d configured", mesh_path, have, want)
         return mesh_path
     out = Path(out_dir) / f"mesh_trim{want}.ply"
-    if not out.is_file():
+    record = out.with_suffix(".json")  # which mesh it was trimmed from: a retrained fold's mesh is trimmed again
+    made_from = {"mesh": file_id(mesh_path), "rings": want}
+    if not out.is_file() or _read_record(record) != made_from:
         out.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(out) as tmp:
             write_mesh_ply(tmp, trim_boundary(read_mesh_ply(mesh_path), want - have), boundary_trim_rings=want)
+        atomic_write_text(record, json.dumps(made_from, indent=2) + "\n")
     return out
+
+
+def _read_record(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def fuse_ground_truth(cfg: DictConfig, data_root: Path, seq, out_path: Path, rel_std: float = 0.01) -> Path:
@@ -197,7 +208,7 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
     settings = refine_settings(cfg)
     source = {"checkpoint": file_id(ckpt), "settings": settings}  # what the variants below are made from
     rows = []
-    for raw, sfm_seq, prep in zip(tests, sfm_seqs, prepared):
+    for k, (raw, sfm_seq, prep) in enumerate(zip(tests, sfm_seqs, prepared)):
         slug = pipeline._slug(prep.seq.name)
         gt = load_ground_truth(info.root, raw.patient, raw.name.split("/")[-1])
         if gt.mesh_path is None:
@@ -208,7 +219,8 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
         for variant, it in (("full", last), ("iteration0", 0)):
             it_dir = fold_dir / f"iteration={it}"
             m = json.loads((it_dir / "metrics.json").read_text())
-            abs_rel[variant] = (m.get("depth_evaluation") or {}).get("abs_rel")
+            # the iteration's depth evaluation is of its first held-out sequence only
+            abs_rel[variant] = (m.get("depth_evaluation") or {}).get("abs_rel") if k == 0 else None
             diff = settings_diff(recorded_settings(it_dir), settings)
             if diff:  # trained with other fusion / failure / PGO settings: its last stage again, as now set
                 ev = refuse_iteration(cfg, info, fold_dir, it, sfm_seq, out_dir / variant, diff)
@@ -216,8 +228,15 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
                 continue
             # Evaluated here, not read from the run's metrics.json, so that every row is measured by the
             # current evaluator (the same one gives the same numbers; a changed one recomputes).
-            mesh = configured_mesh(cfg, it_dir / "mesh.ply", out_dir / variant / slug)
-            _, poses = read_poses_txt(it_dir / "poses.txt")
+            # this sequence's own mesh and poses (the iteration dir's copies are of its first held-out sequence;
+            # runs from before the per-sequence dirs have only those)
+            sdir = it_dir / "sequences" / slug
+            src = sdir if (sdir / "mesh.ply").is_file() and (sdir / "poses.txt").is_file() else it_dir
+            if src is it_dir and k > 0:
+                raise InputError(f"no mesh of held-out sequence {prep.seq.name} in the training run", sdir,
+                                 f"run python train.py fold={int(cfg.fold)} again with the current code")
+            mesh = configured_mesh(cfg, src / "mesh.ply", out_dir / variant / slug)
+            _, poses = read_poses_txt(src / "poses.txt")
             ev = pipeline.evaluate_against_ct(info.root, prep.seq, mesh, poses, out_dir / variant / slug / "evaluation")
             rows.append(_row(raw, variant, ev, abs_rel[variant]))
         depth = std = colors = None
@@ -322,24 +341,30 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
 
     def cell(r, f):
         v = r.get(f)
-        if f == "refused":  # the settings that differed from the training run's, quoted (they hold commas)
-            return '"' + "; ".join(v).replace('"', "'") + '"' if v else ""
+        if f == "refused":  # the settings that differed from the training run's
+            return "; ".join(v) if v else ""
         return "" if v is None else (f"{v:.4f}" if isinstance(v, float) else str(v))
 
-    lines = [",".join(fields)] + [",".join(cell(r, f) for f in fields) for r in rows]
-    csv_path = atomic_write_text(out_dir / "results.csv", "\n".join(lines) + "\n")
-    md = ["| patient | variant | mean (mm) | median (mm) | p95 (mm) | max (mm) | < 1 mm | CT covered (cm²) | depth AbsRel "
-          "| mesh std ρ |",
-          "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")  # quotes what needs it (commas in settings or names)
+    writer.writerow(fields)
+    writer.writerows([cell(r, f) for f in fields] for r in rows)
+    csv_path = atomic_write_text(out_dir / "results.csv", buf.getvalue())
+    # a sequence column only where a patient has several held-out videos (the default has one each)
+    several = len({(r["patient"], r["variant"]) for r in rows}) < len(rows)
+    md = ["| patient | " + ("sequence | " if several else "") + "variant | mean (mm) | median (mm) | p95 (mm) | max (mm) "
+          "| < 1 mm | CT covered (cm²) | depth AbsRel | mesh std ρ |",
+          "| --- | " + ("--- | " if several else "") + "--- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
 
     def fmt(r):
         ar = "" if r.get("abs_rel") is None else f"{r['abs_rel']:.3f}"
         rho = "" if r.get("std_residual_spearman") is None else f"{r['std_residual_spearman']:+.2f}"
         cov = "" if r.get("ct_covered_mm2") is None else f"{r['ct_covered_mm2'] / 100:.1f}"
+        who = f"| {r['patient']} | " + (f"{r.get('sequence') or ''} | " if several else "")
         if r["mean_mm"] is None:
-            return "| {} | {} | n/a | n/a | n/a | n/a | n/a | n/a | {} | |".format(r["patient"], r["variant"], ar)
-        return "| {} | {} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0%} | {} | {} | {} |".format(
-            r["patient"], r["variant"] + ("*" if r.get("refused") else ""), r["mean_mm"], r["median_mm"], r["p95_mm"],
+            return who + "{} | n/a | n/a | n/a | n/a | n/a | n/a | {} | |".format(r["variant"], ar)
+        return who + "{} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0%} | {} | {} | {} |".format(
+            r["variant"] + ("*" if r.get("refused") else ""), r["mean_mm"], r["median_mm"], r["p95_mm"],
             r["max_mm"], r["frac_below_1mm"], cov, ar, rho)
 
     md += [fmt(r) for r in rows]
@@ -347,8 +372,18 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     for v in VARIANTS:
         vals = [r for r in rows if r["variant"] == v and r["mean_mm"] is not None]
         if vals:
-            mean = {k: (float(np.mean([r[k] for r in vals])) if all(r.get(k) is not None for r in vals) else None)
-                    for k in COLUMNS}
+            # over patients: a patient's videos are averaged first, so that one with two videos counts once
+            by_patient: dict = {}
+            for r in vals:
+                by_patient.setdefault(r["patient"], []).append(r)
+
+            def over_patients(k):
+                per = [[r[k] for r in rs] for rs in by_patient.values()]
+                if any(x is None for p in per for x in p):
+                    return None
+                return float(np.mean([np.mean(p) for p in per]))
+
+            mean = {k: over_patients(k) for k in COLUMNS}
             md.append(fmt({"patient": "**mean**", "variant": v, **mean}))
     if refused:
         md += ["", "\\* the iteration's training run used other settings (" + "; ".join(refused) + "): its last stage "

@@ -6,6 +6,8 @@
 Stages, each writing into the run dir and skipped when its outputs exist (an
 interrupted run resumes; a failed stage loses nothing already written)::
 
+    input.json                     what the run dir is made from (the input's identity, K, the mask's digest):
+                                   resuming with another input is an error naming it
     frames/ + decode.json          input: video decoded to PNG frames (video input only)
     mask.png                       the valid-pixel mask used (given or estimated from the dark border)
     sfm/                           SfM stage (endorecon.sfm.stage): model/, sequence.npz, attempts.json
@@ -25,11 +27,14 @@ bounding box, aspect kept, sides divisible by its stride.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
 import shutil
 import time
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +57,38 @@ def _sample(frames: list[Path], k: int = 8) -> list[Path]:
     return [frames[i] for i in sorted(set(np.linspace(0, len(frames) - 1, min(k, len(frames))).astype(int)))]
 
 
+INPUT_RECORD = "input.json"
+
+
+def _source_id(src: Path, cfg: DictConfig) -> dict:
+    """What the run dir's frames come from: the video file (and the frame selection), or a digest of the
+    folder's files (names, sizes, mtimes), so that a run dir is never resumed with another input."""
+    if src.is_file():
+        v = cfg.video
+        return {"input": file_id(src), "video": {k: v.get(k) for k in ("start", "stride", "max_frames")}}
+    h = hashlib.sha1()
+    for p in sorted(q for q in src.rglob("*") if q.is_file() and len(q.relative_to(src).parts) <= 2):
+        st = p.stat()
+        h.update(f"{p.relative_to(src)} {st.st_size} {st.st_mtime_ns}\n".encode())
+    return {"input": str(src.resolve()), "files": h.hexdigest()}
+
+
+def _camera_id(K: np.ndarray, mask: np.ndarray) -> dict:
+    return {"K": [round(float(v), 6) for v in np.asarray(K, np.float64).ravel()],
+            "mask": hashlib.sha1(np.packbits(mask.astype(bool)).tobytes() + str(mask.shape).encode()).hexdigest()}
+
+
+def _check_same_input(out: Path, key: str, now: dict) -> None:
+    """Refuse to resume ``out`` when its record says it was made from another input (nothing is touched)."""
+    path = out / INPUT_RECORD
+    before = _read_json(path).get(key)
+    if before is not None and before != now:
+        what = {"source": "another video / frames folder (or other files in it, or another frame selection)",
+                "camera": "other intrinsics or another mask"}[key]
+        raise InputError(f"this run dir was made from {what}; resuming it would mix the two", path,
+                         f"pass name=<a new name> for a new run dir, or delete {out} to start over")
+
+
 def input_sequence(cfg: DictConfig, out: Path) -> Sequence:
     """The input as a :class:`Sequence` without poses (frames, pixel-centre K, mask), checked.
 
@@ -70,15 +107,23 @@ def input_sequence(cfg: DictConfig, out: Path) -> Sequence:
     src = Path(str(cfg.input))
     if not src.exists():
         raise InputError("input does not exist", src, "pass input=<video file or frames folder>")
+    source_id = _source_id(src, cfg)
+    _check_same_input(out, "source", source_id)  # before any decoding: frames/ may be another video's
     K = mask = None
     k_path: Path | None = None
     if src.is_dir() and (src / "camera.json").is_file() and (src / "frames").is_dir():
         seq = load_sequence_folder(src)
         frames, K, mask, k_path, source = seq.frame_paths, seq.intrinsics, seq.mask, src / "camera.json", "sequence"
+        if cfg.intrinsics is None:  # the folder's own camera must be of its frames' size
+            _, kh, kw, _ = read_camera_json(k_path)
+            fh, fw = read_rgb(frames[0]).shape[:2]
+            if (kh, kw) != (fh, fw):
+                raise InputError(f"camera.json is for {kw}x{kh} frames but the frames are {fw}x{fh}", k_path,
+                                 "write the camera of the frames' resolution, or pass intrinsics=<file>")
     elif src.is_dir() and (src / "camera_intrinsics_per_view").is_file():
         from endorecon.data.original import load_original
 
-        seq = load_original(src)
+        seq = load_original(src, sfm=False)  # SfM runs here again: its poses and points are not needed
         frames, K, mask, k_path, source = seq.frame_paths, seq.intrinsics, seq.mask, \
             src / "camera_intrinsics_per_view", "original"
     elif src.is_file() and src.suffix.lower() in VIDEO_SUFFIXES:
@@ -110,12 +155,19 @@ def input_sequence(cfg: DictConfig, out: Path) -> Sequence:
         mask = read_mask(cfg.mask, expect_hw=(h, w))
     elif mask is None:
         mask = estimate_mask(sample)
+    elif mask.shape != (h, w):
+        raise InputError(f"the folder's mask is {mask.shape[1]}x{mask.shape[0]} but the frames are {w}x{h}",
+                         src, "give a mask of the frames' size (mask=<png>)")
     check_texture(sample, mask, float(cfg.input_checks.min_texture), frames[0].parent)
+    camera_id = _camera_id(K, mask)
+    _check_same_input(out, "camera", camera_id)
     if not (out / "mask.png").is_file():
         from PIL import Image
 
         with atomic_path(out / "mask.png") as tmp:
             Image.fromarray(mask.astype(np.uint8) * 255).save(tmp)
+    if not (out / INPUT_RECORD).is_file():  # a run dir from before the record: it starts being checked now
+        atomic_write_text(out / INPUT_RECORD, json.dumps({"source": source_id, "camera": camera_id}, indent=2) + "\n")
     return Sequence(name=src.stem if src.is_file() else src.name, frame_paths=frames, intrinsics=K, height=h,
                     width=w, mask=mask, source=source)
 
@@ -266,7 +318,7 @@ def infer_stage(module, seq: Sequence, cache, stamp: str, out: Path):
             if str(z["stamp"]) == stamp:
                 return torch.from_numpy(z["depth"]), torch.from_numpy(z["std"]), z["colors"], True
             log.info("depth.npz was made with another checkpoint or resolution: inferring again")
-        except (OSError, KeyError, ValueError) as e:
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
             log.warning("unreadable %s (%s): inferring again", path, e)
     registered = np.flatnonzero(seq.registered).tolist()
     depth, std, colors = pipeline.infer_depth(module, seq, cache, frames=registered)

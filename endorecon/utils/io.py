@@ -41,6 +41,17 @@ def read_json(path: str | Path, fix: str) -> dict:
     return data
 
 
+def _umask() -> int:
+    old = os.umask(0)
+    os.umask(old)
+    return old
+
+
+def _make_public(tmp: Path, directory: bool = False) -> None:
+    """mkstemp / mkdtemp create 0600 / 0700; an artifact gets the permissions a plain open() would give."""
+    os.chmod(tmp, (0o777 if directory else 0o666) & ~_umask())
+
+
 def file_id(path: str | Path) -> dict:
     """An input file's identity for skip-if-done checks: resolved path, size and mtime (ns)."""
     st = Path(path).stat()
@@ -60,6 +71,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{suffix}", dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
+    _make_public(tmp)
     try:
         yield tmp
         os.replace(tmp, path)
@@ -97,6 +109,7 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    _make_public(tmp, directory=True)
     try:
         yield tmp
         if path.exists():

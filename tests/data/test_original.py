@@ -93,6 +93,10 @@ def test_tiny_import_and_pose_convention(tmp_path):
                                                     "end_header\n"), "point cloud is empty", "structure.ply"),
         (lambda d: (d / "view_indexes_per_point").write_text("-1\n10\n-1\n77\n"), "frame 77", "view_indexes_per_point"),
         (lambda d: (d / "motion.yaml").unlink(), "pose file is missing", "motion.yaml"),
+        (lambda d: (d / "camera_intrinsics_per_view").write_text("20 20 inf 12\n"), "not finite",
+         "camera_intrinsics_per_view"),
+        (lambda d: (d / "camera_intrinsics_per_view").write_text("20 20 nan 12\n20 20 nan 12\n"), "not finite",
+         "camera_intrinsics_per_view"),
         (lambda d: Image.fromarray(np.zeros((12, 32, 3), np.uint8)).save(d / "00000012.jpg"), "frame is 32x12",
          "00000012.jpg"),
     ],
@@ -103,3 +107,15 @@ def test_bad_input_names_the_file(tmp_path, breakage, match, fname):
     with pytest.raises(InputError, match=match) as e:
         load_original(d)
     assert e.value.path is not None and e.value.path.name == fname
+
+
+def test_frames_intrinsics_and_mask_only(tmp_path):
+    """A new video in the original format has no SfM files yet: sfm=False reads what reconstruct.py needs."""
+    d = _write_tiny(tmp_path / "t")
+    for f in ("motion.yaml", "structure.ply", "view_indexes_per_point", "visible_view_indexes"):
+        (d / f).unlink()
+    with pytest.raises(InputError, match="missing"):
+        load_original(d)
+    seq = load_original(d, sfm=False)
+    assert len(seq) == 3 and seq.mask.shape == (seq.height, seq.width)
+    np.testing.assert_allclose(seq.intrinsics[:2, 2], [15.5, 11.5])

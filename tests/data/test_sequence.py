@@ -165,3 +165,33 @@ def test_sfm_fingerprint_and_fixed_frame_tell_sfm_models_apart():
     unreg[0] = np.nan  # the first registered frame is then frame 1
     assert same_fixed_frame(unreg, np.concatenate([refined[:1], poses[1:]])) is True
     assert same_fixed_frame(poses, poses[:2]) is None
+
+
+def test_list_frames_orders_numbers_by_value(tmp_path):
+    for k in (1, 2, 10, 11, 3):
+        Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(tmp_path / f"frame_{k}.png")
+    assert [p.name for p in list_frames(tmp_path)] == [f"frame_{k}.png" for k in (1, 2, 3, 10, 11)]
+
+
+def test_artifacts_get_the_permissions_of_a_plain_write(tmp_path):
+    import os
+
+    from endorecon.utils.io import atomic_dir, atomic_write_text
+
+    old = os.umask(0o022)
+    try:
+        f = atomic_write_text(tmp_path / "a.txt", "x")
+        with atomic_dir(tmp_path / "d") as tmp:
+            (tmp / "b").write_text("y")
+    finally:
+        os.umask(old)
+    assert f.stat().st_mode & 0o777 == 0o644
+    assert (tmp_path / "d").stat().st_mode & 0o777 == 0o755
+
+
+def test_damaged_sequence_record_is_an_input_error(tmp_path):
+    path = tmp_path / "sequence.npz"
+    path.write_bytes(b"PK\x03\x04 not a zip")
+    with pytest.raises(InputError, match="corrupt sequence record") as e:
+        Sequence.load(path)
+    assert e.value.path == path

@@ -154,6 +154,18 @@ def test_principal_point_outside_frames():
         V.check_intrinsics_fit(K, 64, 80)
 
 
+def test_intrinsics_for_twice_the_resolution_are_refused():
+    # the sinus clip's camera: its own 1920x1080 frames pass, the frames at half size do not (cx still inside)
+    K = np.array([[677.2, 0, 871.6], [0, 677.2, 471.4], [0, 0, 1.0]])
+    V.check_intrinsics_fit(K, 1080, 1920)
+    V.check_intrinsics_fit(K * np.array([[0.5], [0.5], [1.0]]) + np.array([[0, 0, -0.25], [0, 0, -0.25], [0, 0, 0]]),
+                           540, 960)
+    assert 0 <= K[0, 2] < 960 and 0 <= K[1, 2] < 540
+    with pytest.raises(InputError, match="another resolution") as e:
+        V.check_intrinsics_fit(K, 540, 960, "K.txt")
+    assert "960x540" in e.value.fix
+
+
 # ------------------------------------------------------------------ mask and texture
 def _circle_frames(n=4, r=25):
     yy, xx = np.mgrid[:H, :W]

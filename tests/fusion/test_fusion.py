@@ -268,6 +268,8 @@ def test_bad_std_pixels_are_ignored():
         {"cam_from_world": np.eye(4)[:3]},
         {"cam_from_world": np.full((4, 4), np.nan)},
         {"mask": np.ones((H - 1, W), bool)},
+        {"std": np.ones((W, H), np.float32)},  # as many elements as (H, W): a reshape would scramble it
+        {"mask": np.ones((W, H), bool)},
     ],
 )
 def test_bad_inputs_raise_clear_errors(change):
@@ -276,6 +278,69 @@ def test_bad_inputs_raise_clear_errors(change):
     args.update(change)
     with pytest.raises(InputError, match="fusion"):
         AdaptiveTSDF(0.02, compile=False).integrate(**args)
+
+
+def test_pose_and_intrinsics_that_require_grad_are_accepted():
+    vol = AdaptiveTSDF(0.02, compile=False)
+    vol.integrate(np.ones((H, W), np.float32), np.full((H, W), 0.01, np.float32), None,
+                  torch.tensor(K, requires_grad=True), torch.eye(4, dtype=torch.float64, requires_grad=True))
+    assert vol.frames == 1
+
+
+def test_fuse_frames_names_the_frame_without_depth(tmp_path):
+    frame = dict(std=np.ones((H, W), np.float32), color=np.zeros((H, W, 3), np.float32), K=K, cam_from_world=np.eye(4))
+    with pytest.raises(InputError, match="frame 0 has no 'depth'"):
+        fuse_frames({"name": "adaptive", "voxel_size": 0.02, "compile": False}, [frame], tmp_path / "m.ply")
+    frame = dict(frame, depth=np.ones((H, W), np.float32))
+    del frame["std"]
+    with pytest.raises(InputError, match="frame 0 has no 'std'"):
+        fuse_frames({"name": "adaptive", "voxel_size": 0.02, "compile": False}, [frame], tmp_path / "m.ply")
+    assert not (tmp_path / "m.ply").exists()
+
+
+def test_truncated_ply_names_the_file(tmp_path):
+    frames = [dict(depth=np.full((H, W), 1.0, np.float32), std=np.full((H, W), 0.01, np.float32),
+                   color=np.full((H, W, 3), 0.25, np.float32), K=K, cam_from_world=np.eye(4))]
+    out = fuse_frames({"name": "adaptive", "voxel_size": 0.02, "compile": False}, frames, tmp_path / "m.ply")
+    data = out.read_bytes()
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match="truncated") as e:
+        read_mesh_ply(cut)
+    assert e.value.path == cut
+
+
+def test_plain_tsdf_fuses_every_pixel_with_its_colour():
+    """Open3D's bound check dropped the last column / row and fused column 0 without colour."""
+    for line in (np.s_[:, 0], np.s_[:, W - 1], np.s_[0, :], np.s_[H - 1, :]):
+        depth = np.zeros((H, W), np.float32)
+        depth[line] = 1.0
+        vol = PlainTSDF(0.02, block_search="every_pixel")
+        vol.integrate(depth, None, np.full((H, W, 3), 0.25, np.float32), K, np.eye(4))
+        w = _torch_view(vol.vbg.attribute("weight")).reshape(-1)
+        c = _torch_view(vol.vbg.attribute("color")).reshape(-1, 3)
+        seen = w > 0
+        # a line of 64 or 80 pixels 1.0 away, 6 voxels of truncation each side: hundreds of voxels
+        assert int(seen.sum()) > 300, line
+        assert torch.allclose(c[seen], torch.full_like(c[seen], 0.25 * 255), atol=0.5), line
+
+
+def test_a_reused_block_slot_starts_empty():
+    """Open3D leaves a freed slot's values in place; a block activated into it must not inherit them."""
+    import open3d.core as o3c
+
+    vol = AdaptiveTSDF(0.02, compile=False, block_count=2000)
+    hm = vol.vbg.hashmap()
+    keys = o3c.Tensor(np.array([[100, 100, 100], [101, 100, 100]], np.int32))
+    hm.activate(keys)
+    buf, _ = hm.find(keys)
+    for name in ("tsdf", "weight", "std", "color"):
+        _torch_view(vol.vbg.attribute(name))[_torch_view(buf).long()] = float("nan")
+    hm.erase(keys)
+    vol.integrate(np.ones((H, W), np.float32), np.full((H, W), 0.005, np.float32), None, K, np.eye(4))
+    active = _torch_view(hm.active_buf_indices()).long()
+    for name in ("tsdf", "weight", "std", "color"):
+        assert torch.isfinite(_torch_view(vol.vbg.attribute(name))[active]).all(), name
 
 
 def test_bad_config_raises():
@@ -695,6 +760,24 @@ def test_saved_mesh_loses_surface_the_other_frames_see_through(cls, tmp_path):
     for bad in (dict(free_space_max_fraction=1.5), dict(free_space_max_fraction="x"), dict(free_space_tau=0.0)):
         with pytest.raises(InputError, match="free_space"):
             cls(voxel, **bad, **kw)
+
+
+def test_a_frame_without_mask_does_not_switch_off_the_others_masks():
+    """Three frames whose left half is masked out (and holds far garbage) and one without a mask: the garbage
+    must not count as seeing through the plane (it did: one None mask dropped every mask)."""
+    vol = AdaptiveTSDF(0.02, compile=False, free_space_max_fraction=0.5)
+    plane = np.ones((H, W), np.float32)
+    garbage = plane.copy()
+    garbage[:, : W // 2] = 50.0
+    mask = np.ones((H, W), bool)
+    mask[:, : W // 2] = False
+    std = np.full((H, W), 0.005, np.float32)
+    vol.integrate(plane, std, None, K, np.eye(4), None)
+    for _ in range(3):
+        vol.integrate(garbage, std, None, K, np.eye(4), mask)
+    mesh = vol.extract_mesh()
+    vol.drop_free_space(mesh)
+    assert vol.last_free_space["removed"] == 0 and vol.last_free_space["triangles"] > 1000
 
 
 # ---------------------------------------------------------------- uncertainty trim of the saved mesh

@@ -185,3 +185,102 @@ def test_ablation_variants_follow_the_sfm_model_and_ignore_settings_added_since(
     (legacy / "summary.json").write_text("{}")
     _reset_if_other_source(legacy, src)
     assert not (legacy / "summary.json").exists()
+
+
+def test_ablation_rows_of_each_held_out_video_use_that_videos_mesh(tmp_path, monkeypatch):
+    """Two held-out videos of one patient: the iteration dir's mesh.ply / poses.txt are the first video's copies,
+    so each video's full / iteration0 row must read its own sequences/<slug>/ files."""
+    import json
+    import types
+    from pathlib import Path
+
+    import endorecon.data.dataset as ds
+    import endorecon.tasks.reconstruct as rc
+    import endorecon.tasks.train as tr
+    from endorecon.data.sequence import write_poses_txt
+    from endorecon.tasks import ablation as ab
+
+    fold_dir = tmp_path / "fold"
+    cfg = OmegaConf.create({"fold": 1, "fusion": {"boundary_trim_rings": 0}, "failure": {}, "pgo": {},
+                            "adapt": {"enabled": False}})
+    seqs = [types.SimpleNamespace(patient=1, name=n) for n in ("p1/videoA", "p1/videoB")]
+    for it in (0, 1):
+        it_dir = fold_dir / f"iteration={it}"
+        (it_dir / ".hydra").mkdir(parents=True)
+        OmegaConf.save(cfg, it_dir / ".hydra" / "config.yaml")
+        (it_dir / "metrics.json").write_text(json.dumps({"depth_evaluation": {"abs_rel": 0.1}}))
+        (it_dir / "checkpoints").mkdir()
+        (it_dir / "checkpoints" / "last.ckpt").write_text("x")
+        (it_dir / "mesh.ply").write_text("the first video's copy")
+        write_poses_txt(it_dir / "poses.txt", ["a0"], np.eye(4)[None])
+        for s in seqs:
+            sd = it_dir / "sequences" / pipeline._slug(s.name)
+            sd.mkdir(parents=True)
+            (sd / "mesh.ply").write_text(s.name)
+            write_poses_txt(sd / "poses.txt", ["f0"], np.eye(4)[None])
+    seen = []
+    monkeypatch.setattr(pipeline, "load_sequences", lambda c: types.SimpleNamespace(sequences=seqs, root=tmp_path))
+    monkeypatch.setattr(pipeline, "run_sfm", lambda c, s, r: s)
+    monkeypatch.setattr(tr, "prepare_sequences",
+                        lambda c, s, p: [types.SimpleNamespace(seq=x, cache=None, excluded=None) for x in s])
+    monkeypatch.setattr(rc, "load_module", lambda p: (None, None))
+    monkeypatch.setattr(ds, "load_ground_truth",
+                        lambda root, p, n: types.SimpleNamespace(mesh_path="ct.ply", cam_from_world=np.eye(4)[None]))
+    monkeypatch.setattr(ab, "sfm_fingerprint", lambda s: "x")
+    monkeypatch.setattr(ab, "configured_mesh", lambda c, m, o: m)
+    monkeypatch.setattr(ab, "fuse_ground_truth", lambda *a: tmp_path / "gt.ply")
+    monkeypatch.setattr(pipeline, "infer_depth", lambda *a: (None, None, None))
+    monkeypatch.setattr(pipeline, "refine_sequence",
+                        lambda c, seq, cache, d, s, col, exc, vdir: write_poses_txt(Path(vdir) / "poses.txt", ["f0"],
+                                                                                   np.eye(4)[None]))
+    monkeypatch.setattr(pipeline, "evaluate_against_ct",
+                        lambda root, seq, mesh, poses, out: seen.append((seq.name, Path(mesh))) or {})
+    rows = ab.run_fold(cfg, fold_dir, tmp_path / "out")
+    from_fold = [(name, mesh.read_text()) for name, mesh in seen if fold_dir in mesh.parents]
+    assert from_fold == [("p1/videoA", "p1/videoA")] * 2 + [("p1/videoB", "p1/videoB")] * 2
+    abs_rel = {(r["sequence"], r["variant"]): r["abs_rel"] for r in rows}
+    assert abs_rel[("p1/videoA", "full")] == 0.1 and abs_rel[("p1/videoB", "full")] is None
+
+
+def test_results_table_means_over_patients_and_quotes_the_csv(tmp_path):
+    import csv
+
+    from endorecon.tasks.ablation import COLUMNS, write_table
+
+    def row(patient, seq, mean):
+        return {"patient": patient, "sequence": seq, "variant": "full", "abs_rel": None,
+                **{k: None for k in COLUMNS}, "mean_mm": mean, "median_mm": mean, "p95_mm": mean, "max_mm": mean,
+                "frac_below_1mm": 1.0}
+
+    rows = [row(1, "p1/a,b", 1.0), row(1, "p1/c", 1.0), row(2, "p2/a", 4.0)]
+    csv_path, md_path = write_table(rows, tmp_path)
+    md = md_path.read_text()
+    assert "| **mean** |  | full | 2.500 |" in md  # (1 + 4) / 2, not (1 + 1 + 4) / 3
+    assert "| 1 | p1/a,b | full | 1.000 |" in md  # two videos of patient 1: a sequence column
+    got = list(csv.DictReader(csv_path.open()))
+    assert [r["sequence"] for r in got] == ["p1/a,b", "p1/c", "p2/a"]
+
+
+def test_trimmed_mesh_follows_its_source_mesh(tmp_path):
+    """The table's boundary-trimmed copy of a run's mesh is made again when that mesh changes (a retrained fold)."""
+    import open3d as o3d
+
+    from endorecon.fusion import read_mesh_ply, write_mesh_ply
+    from endorecon.tasks.ablation import configured_mesh
+
+    def grid(z):
+        m = o3d.t.geometry.TriangleMesh.from_legacy(o3d.geometry.TriangleMesh.create_sphere(1.0, 20).translate((0, 0, z)))
+        # an open mesh: the sphere without its upper cap
+        keep = m.vertex.positions.numpy()[m.triangle.indices.numpy()][:, :, 2].max(1) < z + 0.5
+        m.triangle.indices = o3d.core.Tensor(m.triangle.indices.numpy()[keep])
+        return m
+
+    src = tmp_path / "run" / "mesh.ply"
+    src.parent.mkdir()
+    write_mesh_ply(src, grid(0.0), boundary_trim_rings=0)
+    cfg = OmegaConf.create({"fusion": {"boundary_trim_rings": 1}})
+    first = configured_mesh(cfg, src, tmp_path / "out")
+    z0 = read_mesh_ply(first).vertex.positions.numpy()[:, 2].mean()
+    write_mesh_ply(src, grid(5.0), boundary_trim_rings=0)
+    again = configured_mesh(cfg, src, tmp_path / "out")
+    assert again == first and read_mesh_ply(again).vertex.positions.numpy()[:, 2].mean() > z0 + 4

@@ -186,6 +186,78 @@ def test_bad_checkpoint_fails_before_sfm_and_keeps_the_input_stage(tmp_path):
     assert (run_dir / "mask.png").is_file() and not (run_dir / "sfm").exists()
 
 
+def test_a_run_dir_is_not_resumed_with_another_input(tmp_path):
+    """The run dir is named by the input's stem: another clip of the same name, other intrinsics or another mask
+    must not reuse its frames / SfM / depth.  (A bad checkpoint stops each run right after the input stage.)"""
+    from endorecon.tasks.reconstruct import run
+
+    bad = save_ckpt(tmp_path / "bad.ckpt", TINY_NET, weights_of=dict(TINY_NET, growth_rate=6))
+    a = circle_frames(tmp_path / "a" / "frames")
+    b = circle_frames(tmp_path / "b" / "frames", n=6)
+    K = k_file(tmp_path / "K.txt")
+    run_dir = tmp_path / "run"
+    with pytest.raises(InputError, match="do not fit"):
+        run(recon_cfg(run_dir, f"input={a}", f"intrinsics={K}", f"ckpt={bad}"))
+    record = (run_dir / "input.json").read_text()
+    with pytest.raises(InputError, match="another video / frames folder") as e:
+        run(recon_cfg(run_dir, f"input={b}", f"intrinsics={K}", f"ckpt={bad}"))
+    assert e.value.path == run_dir / "input.json" and "name=" in e.value.fix
+    K2 = tmp_path / "K2.txt"
+    K2.write_text("70 70 40 32\n")
+    with pytest.raises(InputError, match="other intrinsics or another mask"):
+        run(recon_cfg(run_dir, f"input={a}", f"intrinsics={K2}", f"ckpt={bad}"))
+    box = tmp_path / "box.png"
+    m = np.zeros((H, W), np.uint8)
+    m[8:56, 10:70] = 255
+    Image.fromarray(m).save(box)
+    with pytest.raises(InputError, match="other intrinsics or another mask"):
+        run(recon_cfg(run_dir, f"input={a}", f"intrinsics={K}", f"mask={box}", f"ckpt={bad}"))
+    assert (run_dir / "input.json").read_text() == record  # nothing was overwritten
+    with pytest.raises(InputError, match="do not fit"):  # the same input again passes the check
+        run(recon_cfg(run_dir, f"input={a}", f"intrinsics={K}", f"ckpt={bad}"))
+
+
+def test_sequence_folder_whose_camera_is_for_another_size(tmp_path, tiny_ckpt):
+    from endorecon.data.sequence import write_camera_json
+    from endorecon.tasks.reconstruct import run
+
+    seq = tmp_path / "seq"
+    circle_frames(seq / "frames")
+    write_camera_json(seq / "camera.json", np.array([[120.0, 0, 79.5], [0, 120.0, 63.5], [0, 0, 1]]), 2 * H, 2 * W)
+    Image.fromarray(np.full((2 * H, 2 * W), 255, np.uint8)).save(seq / "mask.png")
+    with pytest.raises(InputError, match=f"camera.json is for {2 * W}x{2 * H} frames but the frames are {W}x{H}") as e:
+        run(recon_cfg(tmp_path / "run", f"input={seq}", f"ckpt={tiny_ckpt}"))
+    assert e.value.path == seq / "camera.json"
+
+
+def test_original_format_folder_without_sfm_files_is_an_input(tmp_path):
+    from endorecon.tasks.reconstruct import run
+
+    d = tmp_path / "orig"
+    frames = sorted(circle_frames(tmp_path / "frames").iterdir())
+    d.mkdir()
+    for k, f in enumerate(frames):
+        Image.open(f).convert("RGB").save(d / f"{100 + k:08d}.jpg", quality=95)
+    (d / "camera_intrinsics_per_view").write_text("60\n60\n40\n32\n")
+    Image.fromarray(np.full((H, W), 255, np.uint8)).save(d / "undistorted_mask.bmp")
+    bad = save_ckpt(tmp_path / "bad.ckpt", TINY_NET, weights_of=dict(TINY_NET, growth_rate=6))
+    with pytest.raises(InputError, match="do not fit"):  # past the input stage: the SfM files are not needed
+        run(recon_cfg(tmp_path / "run", f"input={d}", f"ckpt={bad}"))
+    assert (tmp_path / "run" / "mask.png").is_file()
+
+
+def test_damaged_depth_npz_is_inferred_again(tmp_path, monkeypatch):
+    from endorecon.tasks import reconstruct as R
+
+    seq = type("S", (), {"registered": np.ones(2, bool)})()
+    (tmp_path / "depth.npz").write_bytes(b"PK\x03\x04" + bytes(64))
+    got = (torch.ones(2, 1, 4, 4), torch.ones(2, 1, 4, 4), np.zeros((2, 4, 4, 3), np.uint8))
+    monkeypatch.setattr(R.pipeline, "infer_depth", lambda module, seq, cache, frames: got)
+    depth, std, colors, skipped = R.infer_stage(None, seq, None, "stamp", tmp_path)
+    assert not skipped and depth.shape == (2, 1, 4, 4)
+    assert str(np.load(tmp_path / "depth.npz")["stamp"]) == "stamp"
+
+
 def test_cli_exit_code_2_and_no_traceback(tmp_path):
     """A path with '=' (like train.py's run dirs) passes through the CLI; bad input is one message, status 2."""
     frames = circle_frames(tmp_path / "fold=0" / "frames")
