@@ -1,9 +1,13 @@
 """Depth accuracy against ground-truth depth (phantom sequences): the SCARED / KITTI metric set.
 
-Per frame: keep pixels that are valid with gt > 0 and pred > 0 (and gt <= cap
-when a cap is given), optionally rescale the prediction by
-median(gt) / median(pred) (monocular depth is up to scale), clamp it to the
-cap, compute the metrics, then average over frames (as monodepth2 / SCARED).
+Per frame: keep pixels that are valid with finite gt > 0 (and gt <= cap when a
+cap is given), optionally rescale the prediction by median(gt) / median(pred)
+(monocular depth is up to scale; medians over the pixels whose prediction is
+finite and > 0), clamp it to the cap, compute the metrics, then average over
+frames (as monodepth2 / SCARED).  A prediction that is not finite or not > 0 is
+scored as the floor ``INVALID_PRED_FLOOR`` x the frame's median gt, never left
+out (a network that fails on its hard pixels must not score better for it), and
+counted in ``n_invalid_pred``.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ METRIC_NAMES = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
 # (often saturated by the light) and the far end of a passage (dark, few SfM points) are where
 # held-out depth goes wrong, and a frame-averaged AbsRel hides which end it is.
 RELATIVE_DEPTH_EDGES = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, float("inf"))
+INVALID_PRED_FLOOR = 1e-3
 
 
 def _as_frames(x, name: str) -> torch.Tensor:
@@ -35,7 +40,7 @@ def _as_frames(x, name: str) -> torch.Tensor:
 
 
 def _usable(pred, gt, valid):
-    """(N, H, W) float64 pred and gt, and the bool mask of pixels usable for metrics (valid, both > 0, finite)."""
+    """(N, H, W) float64 pred and gt, and the bool mask of pixels with ground truth (valid, gt finite and > 0)."""
     p = _as_frames(pred, "pred")
     g = _as_frames(gt, "gt")
     if p.shape != g.shape:
@@ -43,17 +48,24 @@ def _usable(pred, gt, valid):
     m = torch.ones_like(g, dtype=torch.bool) if valid is None else _as_frames(valid, "valid")
     if m.shape != g.shape:
         raise ValueError(f"valid {tuple(m.shape)} and gt {tuple(g.shape)} differ in shape")
-    return p, g, m.bool() & (g > 0) & (p > 0) & torch.isfinite(g) & torch.isfinite(p)
+    return p, g, m.bool() & (g > 0) & torch.isfinite(g)
+
+
+def _median(x: torch.Tensor) -> torch.Tensor:
+    return torch.quantile(x, 0.5)  # the mean of the two middle values (torch.median takes the lower one)
 
 
 def _scaled_frames(p, g, m, median_scaling: bool):
-    """Per frame with usable pixels: (scaled pred, gt, scale) over those pixels; scale = median(gt)/median(pred)."""
+    """Per frame with ground truth: (scaled pred, gt, scale, number of invalid predictions) over its pixels;
+    scale = median(gt)/median(pred) over the valid predictions, invalid ones set to the floor."""
     for pi, gi, mi in zip(p, g, m):
         if not mi.any():
             continue
         pv, gv = pi[mi], gi[mi]
-        s = float(gv.median() / pv.median()) if median_scaling else 1.0
-        yield pv * s, gv, s
+        ok = torch.isfinite(pv) & (pv > 0)
+        s = float(_median(gv[ok]) / _median(pv[ok])) if median_scaling and ok.any() else 1.0
+        floor = INVALID_PRED_FLOOR * float(_median(gv))
+        yield torch.where(ok, pv * s, torch.full_like(pv, floor)), gv, s, int((~ok).sum())
 
 
 def depth_metrics(pred, gt, valid=None, median_scaling: bool = True, cap: float | None = None) -> dict:
@@ -68,15 +80,17 @@ def depth_metrics(pred, gt, valid=None, median_scaling: bool = True, cap: float 
     Returns:
         {abs_rel, sq_rel, rmse, rmse_log, a1, a2, a3 (δ < 1.25, 1.25², 1.25³),
          scale_median (median of the per-frame scale factors; 1 without scaling),
-         n_frames (frames with valid pixels), n_pixels}.
+         n_frames (frames with valid pixels), n_pixels, n_invalid_pred (pixels whose prediction was not
+         finite or not > 0, scored at the floor)}.
     Raises:
         ValueError: wrong shapes or no valid pixel at all.
     """
     p, g, m = _usable(pred, gt, valid)
     if cap is not None:
         m &= g <= cap
-    per_frame, scales, n_pix = [], [], 0
-    for pv, gv, s in _scaled_frames(p, g, m, median_scaling):
+    per_frame, scales, n_pix, n_bad = [], [], 0, 0
+    for pv, gv, s, bad in _scaled_frames(p, g, m, median_scaling):
+        n_bad += bad
         if cap is not None:
             pv = pv.clamp(max=cap)
         ratio = torch.maximum(gv / pv, pv / gv)
@@ -94,10 +108,10 @@ def depth_metrics(pred, gt, valid=None, median_scaling: bool = True, cap: float 
         scales.append(s)
         n_pix += len(gv)
     if not per_frame:
-        raise ValueError("no valid pixel (gt > 0, pred > 0, inside the mask and the cap) in any frame")
+        raise ValueError("no valid pixel (gt > 0, inside the mask and the cap) in any frame")
     mean = torch.tensor(per_frame, dtype=torch.float64).mean(0)
     out = {k: float(v) for k, v in zip(METRIC_NAMES, mean)}
-    out.update(scale_median=float(np.median(scales)), n_frames=len(per_frame), n_pixels=n_pix)
+    out.update(scale_median=float(np.median(scales)), n_frames=len(per_frame), n_pixels=n_pix, n_invalid_pred=n_bad)
     return out
 
 
@@ -122,11 +136,11 @@ def depth_error_by_range(pred, gt, valid=None, edges=RELATIVE_DEPTH_EDGES, media
         raise ValueError(f"edges must be increasing with at least two values, got {edges}")
     p, g, m = _usable(pred, gt, valid)
     rel, err = [], []
-    for pv, gv, _ in _scaled_frames(p, g, m, median_scaling):
-        rel.append(gv / gv.median())
+    for pv, gv, _, _ in _scaled_frames(p, g, m, median_scaling):
+        rel.append(gv / _median(gv))
         err.append(torch.log(pv / gv))
     if not rel:
-        raise ValueError("no valid pixel (gt > 0, pred > 0, inside the mask) in any frame")
+        raise ValueError("no valid pixel (gt > 0, inside the mask) in any frame")
     r, e = torch.cat(rel), torch.cat(err)
     out = []
     for lo, hi in zip(edges[:-1], edges[1:]):

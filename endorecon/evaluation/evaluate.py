@@ -24,6 +24,7 @@ import open3d as o3d
 from endorecon.evaluation.meshes import SAMPLER, ReferenceSurface, load_mesh, sample_points
 from endorecon.evaluation.plots import save_residual_heatmap, save_residual_histogram
 from endorecon.evaluation.registration import register
+from endorecon.utils.errors import InputError
 from endorecon.utils.io import atomic_save_npz, atomic_write_text, file_id
 
 METRICS_FILE = "metrics.json"
@@ -54,11 +55,24 @@ def vertex_std(mesh_path: Path, vertices: np.ndarray) -> np.ndarray | None:
     return tm.vertex["std"].numpy().reshape(-1).astype(np.float64)
 
 
+def _finite_or_null(x):
+    """NaN / inf (no JSON value) as null, e.g. a registration diagnostic of an empty inlier set."""
+    if isinstance(x, dict):
+        return {k: _finite_or_null(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_or_null(v) for v in x]
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x
+
+
 def residual_stats(residual_mm: np.ndarray) -> dict:
     """Summary of point-to-surface distances.  residual_mm: (N,) -> mean/median/p95/max/rmse in mm, frac < 1 mm."""
     r = np.asarray(residual_mm, dtype=np.float64)
     if r.ndim != 1 or len(r) == 0:
         raise ValueError(f"residual_mm must be a non-empty (N,), got {r.shape}")
+    if not np.isfinite(r).all():
+        raise ValueError(f"{int((~np.isfinite(r)).sum())} of {len(r)} residuals are not finite")
     return {
         "mean_mm": float(r.mean()),
         "median_mm": float(np.median(r)),
@@ -135,12 +149,13 @@ def evaluate_mesh(
     reference = load_mesh(reference_path, "reference mesh")
     registration = dict(registration or {})
     params = {"n_points": int(n_points), "seed": int(seed), "sampler": SAMPLER, "registration": registration,
-              "metrics_version": METRICS_VERSION}
+              "metrics_version": METRICS_VERSION, "vmax_mm": vmax_mm, "heatmap_views": heatmap_views}
     inputs = _fingerprint(
         mesh_path, reference_path, (cam_centers, gt_cam_centers, cam_rotations, gt_cam_rotations), params
     )
     metrics_path = out_dir / METRICS_FILE
-    if not overwrite and metrics_path.is_file() and (out_dir / HEATMAP_FILE).is_file() and (out_dir / HISTOGRAM_FILE).is_file():
+    if not overwrite and metrics_path.is_file() and all((out_dir / f).is_file()
+                                                        for f in (HEATMAP_FILE, HISTOGRAM_FILE, RESIDUALS_FILE)):
         try:
             old = json.loads(metrics_path.read_text())
         except json.JSONDecodeError:
@@ -161,6 +176,10 @@ def evaluate_mesh(
         cam_rotations=cam_rotations, gt_cam_rotations=gt_cam_rotations, seed=seed, **registration,
     )
     T = res.ref_from_recon
+    if not np.isfinite(T.matrix()).all() or not T.scale > 0:
+        raise InputError(f"the registration gave no usable similarity (scale {T.scale}, init {res.init})", mesh_path,
+                         "check trajectory= / gt_trajectory= (camera centres that all coincide give no scale), or "
+                         "leave them out for the global registration")
     registered = T.apply(points)
     residual = surface.distance(registered)
 
@@ -193,5 +212,5 @@ def evaluate_mesh(
     save_residual_histogram(residual, out_dir / HISTOGRAM_FILE, title=mesh_path.name)
     metrics["seconds"] = time.perf_counter() - t_start
     metrics["inputs"] = inputs
-    atomic_write_text(metrics_path, json.dumps(metrics, indent=2))
+    atomic_write_text(metrics_path, json.dumps(_finite_or_null(metrics), indent=2, allow_nan=False))
     return metrics

@@ -28,6 +28,8 @@ def umeyama(src, dst, with_scale: bool = True):
     mu_s, mu_d = s_t.mean(0), d_t.mean(0)
     xs, xd = s_t - mu_s, d_t - mu_d
     var_s = (xs * xs).sum() / len(xs)
+    if with_scale and not var_s > 1e-12 * max(1.0, float((s_t * s_t).sum() / len(s_t))):
+        raise ValueError("src points all coincide: no similarity (scale) can be estimated from them")
     cov = xd.T @ xs / len(xs)
     U, S, Vh = torch.linalg.svd(cov)
     D = torch.eye(3, dtype=torch.float64)

@@ -47,6 +47,11 @@ def load_trajectories(poses_path: str | Path, gt_poses_path: str | Path) -> tupl
     A, B = T[ia], T_gt[ib]
     cams = camera_centers(torch.from_numpy(A)).numpy()
     gts = camera_centers(torch.from_numpy(B)).numpy()
+    for c, path in ((cams, poses_path), (gts, gt_poses_path)):
+        if not np.ptp(c, axis=0).max() > 1e-9 * max(1.0, np.abs(c).max()):
+            raise InputError(f"the {len(c)} shared frames' camera centres all coincide: they give no scale", path,
+                             "pass the poses of a moving camera, or drop trajectory= / gt_trajectory= (global "
+                             "registration)")
     return cams, gts, A[:, :3, :3], B[:, :3, :3]
 
 

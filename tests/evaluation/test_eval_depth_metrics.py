@@ -142,3 +142,22 @@ def test_depth_error_by_range_plot(tmp_path):
 
     img = mpimg.imread(out)
     assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100 and img[..., :3].std() > 0.01
+
+
+def test_invalid_predictions_are_scored_not_dropped():
+    """A network that gives NaN or 0 on its hard pixels must not score better for it."""
+    gt = _gt()
+    pred = gt.clone()
+    pred[0, :4] = float("nan")  # 40 of 80 pixels of frame 0
+    pred[1, :2] = 0.0
+    m = depth_metrics(pred, gt)
+    assert m["n_pixels"] == 3 * 8 * 10 and m["n_invalid_pred"] == 40 + 20
+    assert m["abs_rel"] > 0.2 and m["a1"] < 0.9  # the floor is far off
+    assert depth_metrics(gt.clone(), gt)["n_invalid_pred"] == 0
+
+
+def test_median_scaling_uses_the_middle_of_an_even_count():
+    gt = torch.tensor([[[1.0, 2.0, 3.0, 4.0]]], dtype=torch.float64)
+    pred = torch.tensor([[[1.0, 1.0, 3.0, 3.0]]], dtype=torch.float64)
+    # median(gt) = 2.5, median(pred) = 2.0 (torch.median would take 2 and 1)
+    assert depth_metrics(pred, gt)["scale_median"] == pytest.approx(1.25)

@@ -128,6 +128,26 @@ def test_skips_complete_output_and_recomputes_on_change(ct_path, tmp_path):
     assert (out / "metrics.json").stat().st_mtime_ns == stamp
     m = evaluate_mesh(ct_path, ct_path, out, n_points=1200, registration={"init": "identity"})
     assert m["n_points"] == 1200 and (out / "metrics.json").stat().st_mtime_ns != stamp
+    # an output missing (the residuals) or another colour scale for the heat-map: made again
+    (out / "residuals.npz").unlink()
+    evaluate_mesh(ct_path, ct_path, out, n_points=1200, registration={"init": "identity"})
+    assert (out / "residuals.npz").is_file()
+    heat = (out / "residual_heatmap.png").stat().st_mtime_ns
+    evaluate_mesh(ct_path, ct_path, out, n_points=1200, registration={"init": "identity"}, vmax_mm=3.0)
+    assert (out / "residual_heatmap.png").stat().st_mtime_ns != heat
+
+
+def test_coincident_camera_centres_are_an_error_not_nan(ct_path, tmp_path):
+    centres = np.zeros((5, 3))
+    gt = np.random.default_rng(0).normal(size=(5, 3))
+    with pytest.raises((InputError, ValueError), match="coincide"):
+        evaluate_mesh(ct_path, ct_path, tmp_path / "out", n_points=500, cam_centers=centres, gt_cam_centers=gt)
+    assert not (tmp_path / "out" / "metrics.json").exists()
+
+
+def test_residual_stats_refuse_non_finite():
+    with pytest.raises(ValueError, match="not finite"):
+        residual_stats(np.array([0.1, np.nan, 0.3]))
 
 
 @pytest.mark.parametrize("case", ["missing", "empty", "text", "point_cloud", "extension"])
@@ -194,6 +214,13 @@ def test_task_with_trajectory(ct_mesh, ct_path, recon_from_ct, helpers, tmp_path
                  gt_trajectory=str(p_gt), out=str(tmp_path / "out3"), n_points=500))
     with pytest.raises(InputError, match="gt_trajectory"):
         run(_cfg(mesh=str(rec), reference=str(ct_path), trajectory=str(p_rec), out=str(tmp_path / "o4")))
+    # a trajectory of a camera that never moved: no scale, an error naming it (not a NaN registration)
+    still = np.tile(T_rec[:1], (6, 1, 1))
+    write_poses_txt(tmp_path / "still.txt", names, still)
+    with pytest.raises(InputError, match="coincide") as e:
+        run(_cfg(mesh=str(rec), reference=str(ct_path), trajectory=str(tmp_path / "still.txt"),
+                 gt_trajectory=str(p_gt), out=str(tmp_path / "o5"), n_points=500))
+    assert e.value.path.name == "still.txt"
 
 
 def test_config_composes(tmp_path):
