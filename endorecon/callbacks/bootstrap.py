@@ -128,7 +128,8 @@ class BootstrapCallback(L.Callback):
         evaluation = None
         if test_seq is not None:
             prep, sdir = test_seq
-            shutil.copyfile(sdir / "poses.txt", it_dir / "poses.txt")
+            with atomic_path(it_dir / "poses.txt") as tmp:
+                shutil.copyfile(sdir / "poses.txt", tmp)
             with atomic_path(it_dir / "mesh.ply") as tmp:
                 shutil.copyfile(sdir / "mesh.ply", tmp)
             if cfg.bootstrap.evaluate:

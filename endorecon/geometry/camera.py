@@ -113,8 +113,12 @@ def unproject(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     """
     B, _, H, W = check_shape(depth, "depth", (None, 1, None, None))
     check_shape(K, "K", (B, 3, 3))
-    # kornia's grid has pixel centres at integers, as ours.
-    return depth_to_3d_v2(depth[:, 0], K).permute(0, 3, 1, 2)
+    # kornia's grid has pixel centres at integers, as ours; it ignores the skew K[0, 1], which project() applies:
+    # u = fx x + s y + cx, so x = x_kornia - s y / fx.
+    # (Always applied, also at s = 0: so that the gradient w.r.t. K[0, 1] is that of project's inverse.)
+    pts = depth_to_3d_v2(depth[:, 0], K).permute(0, 3, 1, 2)
+    x = pts[:, 0:1] - (K[:, 0, 1] / K[:, 0, 0]).view(B, 1, 1, 1) * pts[:, 1:2]
+    return torch.cat([x, pts[:, 1:]], 1)
 
 
 def mask_bbox_crop(mask: torch.Tensor, multiple: int = 64) -> tuple[int, int, int, int]:

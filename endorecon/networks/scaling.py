@@ -84,7 +84,8 @@ def depth_scale(
     check_shape(sparse_depth, "sparse_depth", (B, 1, H, W))
     check_shape(sparse_valid, "sparse_valid", (B, 1, H, W))
     check_scale_mode(mode)
-    valid = sparse_valid.bool() & torch.isfinite(sparse_depth) & (sparse_depth > 0)
+    # a non-finite prediction at a point leaves that point out (with ratio_of_sums one NaN reset the whole frame)
+    valid = sparse_valid.bool() & torch.isfinite(sparse_depth) & (sparse_depth > 0) & torch.isfinite(depth)
     if mode == "log_mean":
         log_ratio, valid = _log_ratio(depth, sparse_depth, valid, eps)
         n = valid.flatten(1).sum(1)

@@ -287,8 +287,8 @@ def refuse_iteration(cfg: DictConfig, info, fold_dir: Path, it: int, sfm_seq, ou
         prev = Path(fold_dir) / f"iteration={it - 1}" if it > 0 else None
         if prev is not None and (prev / "sequences" / slug / "failures.csv").is_file():
             dst = Path(out_root) / f"iteration={it - 1}" / "sequences" / slug / "failures.csv"
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(prev / "sequences" / slug / "failures.csv", dst)
+            with atomic_path(dst) as tmp:
+                shutil.copyfile(prev / "sequences" / slug / "failures.csv", tmp)
         prep = prepare_sequences(cfg, [sfm_seq], prev)[0]
         module, _ = load_module(ckpt)
         depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)

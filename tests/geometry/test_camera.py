@@ -39,6 +39,16 @@ def test_unproject_fronto_parallel_plane_roundtrip():
     assert torch.allclose(uv[0], torch.stack([u, v], -1).reshape(-1, 2).double())
 
 
+def test_unproject_then_project_with_skew_is_the_identity():
+    K = K_()
+    K[0, 0, 1] = 2.0
+    depth = torch.rand(1, 1, 6, 8, dtype=torch.float64) + 1.0
+    uv, z = project(unproject(depth, K).flatten(2).transpose(1, 2), K)
+    v, u = torch.meshgrid(torch.arange(6.0), torch.arange(8.0), indexing="ij")
+    torch.testing.assert_close(uv[0], torch.stack([u, v], -1).reshape(-1, 2).double())
+    torch.testing.assert_close(z[0], depth.flatten())
+
+
 def test_scale_intrinsics_pixel_centre_rule():
     # A 4x downsample: the centre of the 4x4 block of full-res pixels 0..3 is 1.5 -> new pixel 0.
     K = K_(cx=1.5, cy=1.5)

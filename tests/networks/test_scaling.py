@@ -32,6 +32,14 @@ def test_ratio_of_sums_definition():
     assert scale.item() == 1.0  # (2+2)/(1+3), not the mean ratio (2 + 2/3)/2
 
 
+@pytest.mark.parametrize("mode", ["ratio_of_sums", "log_mean"])
+def test_a_nan_prediction_at_a_point_leaves_only_that_point_out(mode):
+    depth = torch.tensor([1.0, 1.0, float("nan")], dtype=torch.float64).view(1, 1, 1, 3)
+    sparse = torch.full_like(depth, 2.0)
+    scale, has = depth_scale(depth, sparse, torch.ones(1, 1, 1, 3, dtype=torch.bool), mode=mode)
+    assert has.item() and scale.item() == pytest.approx(2.0)
+
+
 def test_frames_without_points_keep_scale_one():
     depth = torch.full((2, 1, 4, 4), 2.0)
     sparse = torch.full_like(depth, 6.0)
