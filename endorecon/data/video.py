@@ -69,6 +69,9 @@ def extract_frames(video: str | Path, out_dir: str | Path, stride: int = 1, max_
         w, h = (int(v) for v in meta["size"])
         fps, duration = float(meta.get("fps") or 0), float(meta.get("duration") or 0)
         expected = int(round(fps * duration)) if fps > 0 and duration > 0 else None
+        declared = avi_declared_frames(video)
+        if declared:  # an AVI without its index reports a duration estimated from the file size: not a check
+            expected = declared
         stopped_early = False
         with Progress(transient=True) as bar:
             task = bar.add_task(f"decode {video.name}", total=expected)
@@ -106,6 +109,26 @@ def extract_frames(video: str | Path, out_dir: str | Path, stride: int = 1, max_
             video=str(video), size=[h, w], fps=fps, duration_s=duration, expected=expected, decoded=decoded,
             frames=kept, start=start, stride=stride, truncated=truncated, error=error), indent=2) + "\n")
     return list_frames(out_dir)
+
+
+def avi_declared_frames(path: str | Path) -> int | None:
+    """The frame count an AVI's main header (``avih``, dwTotalFrames) declares; None for other files.
+
+    ffmpeg reports a cut AVI's duration from its size, so "decoded < duration x fps" misses truncation
+    there; the header, written when the file was closed, still holds the full count."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return None
+    if head[:4] != b"RIFF" or head[8:12] != b"AVI ":
+        return None
+    i = head.find(b"avih")
+    if i < 0 or len(head) < i + 28:
+        return None
+    total = int.from_bytes(head[i + 24 : i + 28], "little")  # the fifth uint32 of the header's data
+    return total or None
 
 
 def _short(e: BaseException) -> str:

@@ -107,6 +107,18 @@ def test_truncated_video(clip, tmp_path):
     assert 3 <= len(out) < 12 and meta["truncated"] and meta["decoded"] == len(out)
 
 
+def test_truncated_avi_is_detected(tmp_path):
+    # a cut AVI has no index: ffmpeg estimates its duration from the size, the header still counts every frame
+    path = write_video(tmp_path / "clip.avi", textured_frames(20), faststart=False, codec="mjpeg")
+    assert V.avi_declared_frames(path) == 20 and V.avi_declared_frames(tmp_path / "none.avi") is None
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size * 85 // 100])
+    with pytest.raises(InputError, match="truncated") as e:
+        V.extract_frames(cut, tmp_path / "frames")
+    assert "of the 20 its header announces" in str(e.value)
+    assert len(V.extract_frames(path, tmp_path / "full")) == 20
+
+
 def test_truncated_without_index_is_unreadable(tmp_path):
     # without faststart the index (moov) sits at the end: a cut file cannot be opened at all
     path = write_video(tmp_path / "slow.mp4", textured_frames(12), faststart=False)
