@@ -351,11 +351,16 @@ def optimize_poses(
     with progress:
         task = progress.add_task("PGO", total=iterations, loss=loss_before)
         for _ in range(iterations):
-            value = float(opt.step(closure)) if opt_name == "lbfgs" else _adam_step(opt, closure)
-            if opt_name == "lbfgs" and history and abs(value - history[-1]) <= 1e-9 * max(1.0, abs(value)):
-                # A failed line search leaves L-BFGS stuck at one point: restart it with a smaller step.
-                lr *= 0.5
-                opt = make_lbfgs(lr)
+            if opt_name == "lbfgs":
+                xi_before = xi.detach().clone()
+                value = float(opt.step(closure))  # the loss at the start of the step
+                if torch.equal(xi.detach(), xi_before):
+                    # A failed line search leaves L-BFGS stuck at one point: restart it with a smaller step
+                    # now (comparing the returned losses, start-of-step values, saw it one iteration late).
+                    lr *= 0.5
+                    opt = make_lbfgs(lr)
+            else:
+                value = _adam_step(opt, closure)
             if sched is not None:
                 sched.step()
             history.append(value)

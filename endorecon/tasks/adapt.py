@@ -20,6 +20,7 @@ never silent.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import logging
 import math
@@ -77,6 +78,25 @@ def _datamodule(data_cfg, prepared, opts: dict, augment: bool):
     except InputError as e:
         fix = "pass adapt.enabled=false to reconstruct without adaptation"
         raise InputError(f"adaptation: {e.what}", e.path, f"{e.fix}; or {fix}" if e.fix else fix) from e
+
+
+# The data keys that change the adaptation's batches (height, width, batch size, seed and the validation split
+# are set by the adaptation itself; workers and the frame cache change nothing).
+_DATA_KEYS = ("min_interval", "max_interval", "drop_last", "augment")
+
+
+def _data_stamp(data_cfg) -> dict:
+    from endorecon.data.augment import AugmentConfig
+    from endorecon.data.datamodule import DEFAULTS as DATA_DEFAULTS
+
+    if data_cfg is not None and not isinstance(data_cfg, dict):
+        from omegaconf import OmegaConf
+
+        data_cfg = OmegaConf.to_container(data_cfg, resolve=True)
+    c = {**DATA_DEFAULTS, **(data_cfg or {})}
+    # the augmentation as the data module completes it (a partial block takes the rest from the defaults)
+    aug = dataclasses.asdict(AugmentConfig.from_dict(c["augment"]))
+    return {k: (aug if k == "augment" else c[k]) for k in _DATA_KEYS}
 
 
 @torch.no_grad()
@@ -164,7 +184,8 @@ def run(cfg_adapt, module, data_cfg, prepared, out_dir: Path, stamp: str) -> tup
     """The adaptation stage: adapt ``module`` (in place) and write ``out_dir/adapted.ckpt`` + ``adapt.json``.
 
     Skipped (the saved weights are loaded into ``module``) when ``adapt.json`` exists with the same
-    ``stamp`` (checkpoint, video, resolution) and options.
+    ``stamp`` (checkpoint, video, resolution), options and batch-making data keys (pair intervals,
+    augmentation).
     Returns (adapted checkpoint, the ``adapt.json`` dict, skipped); (None, None, False) when disabled.
     """
     opts = _options(cfg_adapt)
@@ -172,7 +193,8 @@ def run(cfg_adapt, module, data_cfg, prepared, out_dir: Path, stamp: str) -> tup
     ckpt, report = out_dir / "adapted.ckpt", out_dir / "adapt.json"
     if not opts["enabled"]:
         return None, None, False
-    full_stamp = json.dumps({"input": stamp, "options": {k: opts[k] for k in sorted(opts)}}, sort_keys=True)
+    full_stamp = json.dumps({"input": stamp, "options": {k: opts[k] for k in sorted(opts)},
+                             "data": _data_stamp(data_cfg)}, sort_keys=True)
     if report.is_file() and ckpt.is_file():
         try:
             done = json.loads(report.read_text())

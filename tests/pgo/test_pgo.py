@@ -130,6 +130,34 @@ def test_cached_stds_give_the_same_optimisation(scene):
     assert (free.cam_from_world - cached.cam_from_world).abs().max() > 1e-5  # and not elsewhere
 
 
+def test_stalled_lbfgs_is_restarted_at_once(scene, monkeypatch):
+    # A step whose line search fails leaves the poses where they were; the next step must already run with a
+    # fresh L-BFGS at half the step (the stall was seen one iteration late when judged by the returned
+    # losses, which are start-of-step values).
+    made, steps = [], []
+    real = torch.optim.LBFGS
+
+    class Recording(real):
+        def __init__(self, params, lr, **kw):
+            super().__init__(params, lr=lr, **kw)
+            made.append(lr)
+
+        def step(self, closure):
+            steps.append(self.defaults["lr"])
+            if len(steps) == 1:  # the first step stalls: no move
+                with torch.enable_grad():
+                    return closure()
+            return super().step(closure)
+
+    monkeypatch.setattr(torch.optim, "LBFGS", Recording)
+    g = torch.Generator().manual_seed(3)
+    xi = 0.01 * torch.randn(N, 6, generator=g, dtype=torch.float64)
+    xi[0] = 0
+    res = optimize(scene, se3_exp(xi) @ scene.cam_from_world, iterations=3, lr=1.0)
+    assert steps == [1.0, 0.5, 0.5] and made == [1.0, 0.5]
+    assert res.loss_after < res.loss_before
+
+
 def test_bad_input(scene):
     T = scene.cam_from_world.clone()
     T[1:] = float("nan")

@@ -115,6 +115,11 @@ def test_stage_writes_a_loadable_checkpoint_and_skips(prepared, tmp_path, monkey
         adapt.run(FAST, module(), DATA, prepared, tmp_path / "adaptation", "stamp-2")
     with pytest.raises(pytest.fail.Exception):
         adapt.run({**FAST, "max_lr": 1e-3}, module(), DATA, prepared, tmp_path / "adaptation", "stamp-1")
+    # other batches (augmentation, pair intervals): adapted again; the number of loader workers changes nothing
+    for data in ({**DATA, "augment": {"enabled": True}}, {**DATA, "max_interval": 3}):
+        with pytest.raises(pytest.fail.Exception):
+            adapt.run(FAST, module(), data, prepared, tmp_path / "adaptation", "stamp-1")
+    assert adapt.run(FAST, module(), {**DATA, "num_workers": 2}, prepared, tmp_path / "adaptation", "stamp-1")[2]
 
 
 def test_disabled_stage_does_nothing(prepared, tmp_path):
