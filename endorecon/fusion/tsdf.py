@@ -378,11 +378,14 @@ class _TSDFBase:
             write_mesh_ply(tmp, mesh, boundary_trim_rings=self.boundary_trim_rings)
         return path
 
-    def _remember(self, depth: torch.Tensor, mask: torch.Tensor | None, K: np.ndarray, T: np.ndarray) -> None:
+    def _remember(self, depth: torch.Tensor, mask: torch.Tensor | None, K: np.ndarray, T: np.ndarray,
+                  std: torch.Tensor | None = None) -> None:
         if self.free_space_max_fraction is not None:
             # the caller may reuse its arrays; a frame without a mask keeps every pixel (so that the others' masks
             # still count in the free-space check)
             keep = torch.ones_like(depth, dtype=torch.bool) if mask is None else mask.clone()
+            if std is not None:  # a pixel that fusion leaves out for its std does not carve free space either
+                keep &= torch.isfinite(std) & (std > 0)
             self._seen.append((depth.clone(), keep, K, T))
 
     def drop_uncertain(self, mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.TriangleMesh:
@@ -513,7 +516,7 @@ class AdaptiveTSDF(_TSDFBase):
             raise InputError("fusion: the adaptive TSDF needs a depth std per pixel", fix="pass std, or use fusion=plain")
         depth, std, color, mask, K, T = self._check(depth, std, color, K, cam_from_world, mask)
         self.frames += 1
-        self._remember(depth, mask, K, T)
+        self._remember(depth, mask, K, T, std)
         depth, std, color, widest = self._clean(depth, std, color, mask, self._params)
         widest = float(widest)
         if widest <= 0:  # no usable pixel

@@ -780,6 +780,24 @@ def test_a_frame_without_mask_does_not_switch_off_the_others_masks():
     assert vol.last_free_space["removed"] == 0 and vol.last_free_space["triangles"] > 1000
 
 
+def test_pixels_without_a_usable_std_do_not_carve_free_space():
+    """Three frames whose left half has far garbage with a NaN / zero / inf std: fusion leaves those pixels out,
+    so they must not count as seeing through the plane either."""
+    vol = AdaptiveTSDF(0.02, compile=False, free_space_max_fraction=0.5)
+    plane = np.ones((H, W), np.float32)
+    garbage = plane.copy()
+    garbage[:, : W // 2] = 50.0
+    std = np.full((H, W), 0.005, np.float32)
+    vol.integrate(plane, std, None, K, np.eye(4))
+    for bad in (np.nan, 0.0, np.inf):
+        bad_std = std.copy()
+        bad_std[:, : W // 2] = bad
+        vol.integrate(garbage, bad_std, None, K, np.eye(4))
+    mesh = vol.extract_mesh()
+    vol.drop_free_space(mesh)
+    assert vol.last_free_space["removed"] == 0 and vol.last_free_space["triangles"] > 1000
+
+
 # ---------------------------------------------------------------- uncertainty trim of the saved mesh
 def test_drop_uncertain_removes_the_triangles_of_vertices_over_the_ratio():
     from endorecon.fusion import drop_uncertain
