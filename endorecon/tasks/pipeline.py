@@ -297,12 +297,14 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
     sparse_flow_fn = _flow_fn(cache)
     # 2. failure detection.
     t0 = time.perf_counter()
-    flagged = np.zeros(n, bool)
+    flagged = np.zeros(n, bool)  # the checked frames flagged and the frames around them that take their verdict
     report = detect_failures(depth, std, torch.from_numpy(sim)[:, None], torch.from_numpy(sim_valid)[:, None], K,
                              torch.from_numpy(poses), mask, sparse_flow_fn, _stage_cfg(cfg.failure))
     report.to_csv(out_dir / "failures.csv")
     if cfg.failure.enabled:
-        flagged[list(report.flagged_frames)] = True
+        # only every interval-th frame is checked; its neighbours within exclude_radius share its verdict
+        radius = cfg.failure.get("exclude_radius")
+        flagged[[f for f in report.excluded_frames(None if radius is None else int(radius)) if f < n]] = True
     times["failure_s"] = time.perf_counter() - t0
 
     # 2b. a range flagged in this and the previous iteration: SfM rerun on it, aligned poses spliced in.
@@ -361,8 +363,9 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         frames=n,
         registered=int(registered.sum()),
         fused=int(keep.sum()),
-        flagged=[int(i) for i in np.flatnonzero(flagged)],
-        n_flagged=int(flagged.sum()),
+        flagged=[int(f) for f in report.flagged_frames] if cfg.failure.enabled else [],
+        n_flagged=len(report.flagged_frames) if cfg.failure.enabled else 0,
+        excluded=[int(i) for i in np.flatnonzero(flagged)],  # left out of this fusion and the next iteration
         checked=int(len(report.checked_frames)) if hasattr(report, "checked_frames") else None,
         pgo=pgo_summary,
         resfm=resfm_info,
@@ -420,11 +423,13 @@ def evaluate_depth(data_root: Path, seq: Sequence, depth: torch.Tensor, std: tor
     h, w = depth.shape[-2:]
     g_small = F.interpolate(g, size=(h, w), mode="area")
     v_small = F.interpolate(v, size=(h, w), mode="area") > 0.999  # only pixels whose whole footprint is valid
-    valid = v_small & torch.from_numpy(seq.mask)[None, None] & (depth > 0)
+    # depth_metrics scores a non-finite / non-positive prediction at its floor and counts it: not left out here
+    valid = v_small & torch.from_numpy(seq.mask)[None, None]
+    pred_ok = torch.isfinite(depth) & (depth > 0) & torch.isfinite(std)  # what a rank or a ratio can use
     results = []
     for cap_mm in caps_mm:
         out = depth_metrics(depth, g_small, valid, median_scaling=True, cap=cap_mm)
-        mask = valid if cap_mm is None else valid & (g_small <= cap_mm)
+        mask = (valid if cap_mm is None else valid & (g_small <= cap_mm)) & pred_ok
         # Per-frame median scale, then rank-correlate std with |error| over all pixels.
         errs, stds = torch.zeros_like(depth), torch.zeros_like(std)
         for i in range(len(depth)):

@@ -476,7 +476,8 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         f"# Reconstruction of {seq.name}",
         "",
         f"- frames: {len(seq)}, registered by SfM: {summary['registered']}, fused: {summary['fused']}",
-        f"- flagged by failure detection: {summary['n_flagged']} {summary['flagged']}",
+        f"- flagged by failure detection: {summary['n_flagged']} {summary['flagged']}"
+        + (f"; left out of fusion with their neighbours: {summary['excluded']}" if summary.get("excluded") else ""),
         f"- network input: {seq.width}x{seq.height} (window {seq.native_window} of the frames)",
         f"- checkpoint: `{ckpt}`",
         f"- test-time adaptation: {_adapt_line(adapt_info)}",

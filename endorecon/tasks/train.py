@@ -90,7 +90,8 @@ def prepare_sequences(cfg: DictConfig, sfm_seqs: list[Sequence], prev_dir: Path 
             small = small.replace(cam_from_world=poses)
             sim, sim_valid = pipeline.load_simulated(sdir / "simulated_depth.npz")
             excluded = np.zeros(len(small), bool)
-            excluded[summary["flagged"]] = True
+            # "excluded": the flagged frames and their neighbours (summaries before it held "flagged" alone)
+            excluded[summary.get("excluded", summary["flagged"])] = True
         cache = build_sparse_cache(small)
         out.append(PreparedSequence(seq=small, cache=cache, sim_depth=sim, sim_valid=sim_valid, excluded=excluded))
     return out

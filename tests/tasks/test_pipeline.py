@@ -284,3 +284,25 @@ def test_trimmed_mesh_follows_its_source_mesh(tmp_path):
     write_mesh_ply(src, grid(5.0), boundary_trim_rings=0)
     again = configured_mesh(cfg, src, tmp_path / "out")
     assert again == first and read_mesh_ply(again).vertex.positions.numpy()[:, 2].mean() > z0 + 4
+
+
+def test_held_out_depth_evaluation_scores_invalid_predictions(monkeypatch):
+    """Half of each frame's prediction NaN / negative: the held-out depth evaluation must count those pixels
+    and score them at the floor (they were dropped from its mask, so the other half alone gave AbsRel 0)."""
+    import types
+
+    import endorecon.data.dataset as dataset
+    from endorecon.tasks import pipeline
+
+    n, h, w = 2, 8, 8
+    gt = np.full((n, h, w), 50.0, np.float32)
+    monkeypatch.setattr(dataset, "load_ground_truth", lambda root, p, name: types.SimpleNamespace(depth_mm=gt))
+    seq = types.SimpleNamespace(patient=0, name="patient_00/seq_00", mask=np.ones((h, w), bool))
+    depth = 50.0 + torch.randn(n, 1, h, w, generator=torch.Generator().manual_seed(0))
+    depth[0, :, :4] = float("nan")
+    depth[1, :, :4] = -1.0
+    std = torch.rand(n, 1, h, w) + 0.1
+    out = pipeline.evaluate_depth(None, seq, depth, std)[0]
+    assert out["n_pixels"] == n * h * w and out["n_invalid_pred"] == n * h * w // 2
+    assert out["abs_rel"] > 0.4
+    assert np.isfinite(out["std_error_spearman"])  # ranked over the valid predictions

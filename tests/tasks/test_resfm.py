@@ -356,6 +356,31 @@ def test_refine_sequence_rerun_disabled(tmp_path, fake_rerun, light_pipeline):
     assert "enabled is false" in s1["resfm"]["skipped"] and fake_rerun.calls == []
 
 
+@pytest.mark.parametrize("radius, left_out", [(None, [13, 14, 15, 16, 17]), (1, [14, 15, 16]), (0, [15])])
+def test_refine_sequence_leaves_out_the_flagged_frames_neighbours(tmp_path, monkeypatch, light_pipeline, radius,
+                                                                  left_out):
+    """Only every 5th frame is checked; the frames within failure.exclude_radius of a flagged one take its verdict:
+    left out of the final fusion and listed for the next iteration (only the checked frame was)."""
+    pipeline, _ = light_pipeline
+    uses = []
+
+    class Volume:
+        def extract_mesh(self):
+            return None
+
+        def save_mesh(self, path):
+            Path(path).write_text("ply stub\n")
+
+    monkeypatch.setattr(pipeline, "fuse_sequence", lambda cfg, seq, d, s, c, poses, use, **k: (uses.append(use), Volume())[1])
+    cfg = make_cfg(enabled=False)
+    cfg.failure.exclude_radius = radius
+    seq = make_seq(tmp_path, gt_poses())
+    summary = _refine(pipeline, cfg, seq, tmp_path / "fold=0" / "iteration=0" / "sequences" / "s")
+    assert np.flatnonzero(~uses[-1]).tolist() == left_out and uses[0].all()
+    assert summary["flagged"] == [15] and summary["n_flagged"] == 1 and summary["excluded"] == left_out
+    assert summary["fused"] == N - len(left_out)
+
+
 # ------------------------------------------------------------------ real pycolmap
 @pytest.mark.slow
 def test_real_rerun_restores_corrupted_poses_on_a_phantom(tmp_path):

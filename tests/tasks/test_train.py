@@ -308,7 +308,7 @@ def _four_frame_sequence(tmp_path, rot_deg: float = 0.0, seed: int = 0):
                     points_xyz=pts, visibility=[np.arange(4)] * 50, units="sfm", source="colmap", patient=0)
 
 
-def _previous_iteration(tmp_path, seq, record_fingerprint: bool = True) -> Path:
+def _previous_iteration(tmp_path, seq, record_fingerprint: bool = True, **summary_keys) -> Path:
     """An iteration dir as refine_sequence leaves it for ``seq`` (poses nudged as dense PGO would, with the
     first frame fixed)."""
     from endorecon.data.sequence import sfm_fingerprint, write_poses_txt
@@ -321,7 +321,7 @@ def _previous_iteration(tmp_path, seq, record_fingerprint: bool = True) -> Path:
     refined[1:, :3, 3] += 1e-3
     write_poses_txt(sdir / "poses.txt", [p.name for p in seq.frame_paths], refined)
     pipeline.save_simulated(sdir / "simulated_depth.npz", np.zeros((4, 64, 80), np.float32), np.zeros((4, 64, 80), bool))
-    summary = {"flagged": [], "resfm": {"replaced_frames": []}}
+    summary = {"flagged": [], "resfm": {"replaced_frames": []}, **summary_keys}
     if record_fingerprint:
         summary["sfm_fingerprint"] = sfm_fingerprint(seq)
     (sdir / "summary.json").write_text(json.dumps(summary))
@@ -348,6 +348,19 @@ def test_poses_of_another_sfm_model_are_refused(tmp_path, recorded):
     with pytest.raises(InputError, match="another SfM model") as e:
         prepare_sequences(cfg, [other], prev)
     assert "poses.txt" in str(e.value) and "iteration=0" in str(e.value)
+
+
+@pytest.mark.parametrize("keys, excluded", [({"flagged": [2], "excluded": [1, 2, 3]}, [1, 2, 3]),
+                                            ({"flagged": [2]}, [2])])  # a summary from before "excluded"
+def test_next_iteration_leaves_out_the_previous_exclusions(tmp_path, keys, excluded):
+    from omegaconf import OmegaConf
+
+    from endorecon.tasks.train import prepare_sequences
+
+    cfg = OmegaConf.create({"data": {"height": 64, "width": 80}, "paths": {"cache_dir": str(tmp_path / "cache")}})
+    seq = _four_frame_sequence(tmp_path)
+    prep = prepare_sequences(cfg, [seq], _previous_iteration(tmp_path, seq, **keys))[0]
+    assert np.flatnonzero(prep.excluded).tolist() == excluded
 
 
 @pytest.mark.parametrize("damage", ["truncated", "missing", "not_an_object"])
