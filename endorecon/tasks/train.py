@@ -40,6 +40,73 @@ def is_complete(it_dir: Path) -> bool:
     return (it_dir / "metrics.json").is_file()
 
 
+# The settings that make an iteration's results.  Left out: where things go, how they are shown or logged, how
+# fast they run (workers, caches, chunks, compile, devices), and what is only checked against the results
+# (bootstrap.targets) or run around them (adapt, evaluation caps).
+_RESULT_GROUPS = ("data", "model", "loss", "fusion", "failure", "pgo", "sfm", "bootstrap", "trainer", "seed")
+_NO_EFFECT = {
+    "data": {"num_workers", "cache_frames_mb"},
+    "model": {"log_images_every_n_steps"},
+    "fusion": {"compile", "device", "block_count"},
+    "failure": {"batch_size"},
+    "pgo": {"progress", "edge_chunk", "std_cache_mb"},
+    "sfm": {"colmap_verbose", "num_threads"},
+    "bootstrap": {"targets", "run_missing", "evaluate", "depth_cap_mm"},
+    "trainer": {"_target_", "accelerator", "devices", "log_every_n_steps", "num_sanity_val_steps",
+                "enable_model_summary", "limit_val_batches", "deterministic"},
+}
+
+
+def _leaves(node, prefix: str = "") -> dict:
+    if isinstance(node, dict):
+        out = {}
+        for k, v in node.items():
+            out.update(_leaves(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    return {prefix: node}
+
+
+def config_differences(recorded: DictConfig, current: DictConfig) -> list[str]:
+    """``group.key: recorded -> current`` for every result-making setting that differs between an iteration's
+    recorded ``.hydra/config.yaml`` and ``current`` (unresolved: interpolations compare as written).  A key that
+    only one of them has (added or removed since) is not compared."""
+    out = []
+    for group in _RESULT_GROUPS:
+        if group not in recorded or group not in current:
+            continue
+        a = _leaves(OmegaConf.to_container(recorded, resolve=False)[group], group)
+        b = _leaves(OmegaConf.to_container(current, resolve=False)[group], group)
+        skip = _NO_EFFECT.get(group, set())
+        for key in sorted(set(a) & set(b)):
+            if key.split(".")[1:2] and key.split(".")[1] in skip:
+                continue
+            if a[key] != b[key]:
+                out.append(f"{key}: {a[key]!r} -> {b[key]!r}")
+    return out
+
+
+def check_same_settings(cfg: DictConfig) -> None:
+    """Refuse to skip or resume iterations of this fold that were made with other settings: the run dir
+    (``outputs/train/fold=<k>``) does not encode the overrides, and their results would be returned as this
+    configuration's."""
+    for it in range(int(cfg.iteration) + 1):
+        path = iteration_dir(cfg, it) / ".hydra" / "config.yaml"
+        if not path.is_file():
+            continue
+        try:
+            recorded = OmegaConf.load(path)
+        except Exception as e:  # noqa: BLE001 - any parse error: the file cannot vouch for the iteration
+            raise InputError(f"unreadable config of a previous run ({type(e).__name__})", path,
+                             f"delete {path.parents[1]} so that the iteration is made again") from e
+        diffs = config_differences(recorded, cfg)
+        if diffs:
+            shown = "; ".join(diffs[:6]) + (f"; and {len(diffs) - 6} more" if len(diffs) > 6 else "")
+            raise InputError(
+                f"iteration {it} of fold {cfg.fold} was made with other settings ({shown})", path,
+                f"pass the settings it was made with, train elsewhere (paths.output_root=<dir>), or delete "
+                f"{Path(cfg.paths.run_dir)} to train again with these")
+
+
 def check_same_sfm(seq: Sequence, summary: dict, refined_cam_from_world: np.ndarray, sdir: Path,
                    sfm_cache: Path) -> None:
     """Refuse poses that an earlier iteration refined from another SfM model of ``seq``.
@@ -119,6 +186,7 @@ def run(cfg: DictConfig) -> float | None:
     L.seed_everything(int(cfg.seed), workers=True)
     info = pipeline.load_sequences(cfg)
     pipeline.check_fold(int(cfg.fold), info.patients_with_ct)
+    check_same_settings(cfg)
     todo = [it for it in range(int(cfg.iteration) + 1) if not is_complete(iteration_dir(cfg, it))]
     if not todo:
         log.info("all iterations up to %d of fold %d are complete", cfg.iteration, cfg.fold)
@@ -178,6 +246,12 @@ def run_iteration(cfg: DictConfig, it: int, sfm_seqs: list[Sequence], info: pipe
     elif cfg.ckpt_path not in (None, "last"):
         ckpt = str(cfg.ckpt_path)
     trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
+    if boot.metrics is None and ckpt is not None and trainer.fit_loop.done and not trainer.interrupted:
+        # last.ckpt was saved after the final epoch and the end-of-iteration stage (fusion, failure detection,
+        # PGO) then stopped: Lightning restores it, finds max_epochs reached and ends without on_train_end.
+        # Make that stage now, with the restored weights (sequences it finished are skipped by their summaries).
+        log.info("iteration %d: training had finished in %s; making its fusion, failure detection and PGO", it, ckpt)
+        boot.on_train_end(trainer, module)
     if boot.metrics is None:  # training was interrupted before on_train_end
         raise InputError(f"iteration {it} did not finish", it_dir, "resume with ckpt_path=last")
     return boot.metrics

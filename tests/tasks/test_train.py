@@ -102,6 +102,34 @@ def test_a_complete_fold_reports_its_held_out_results_again(debug_run, caplog):
 
 
 @pytest.mark.slow
+def test_iteration_whose_end_stage_stopped_resumes_from_last(debug_root, tmp_path, monkeypatch):
+    """The end-of-iteration stage (fusion, failure detection, PGO) stops after the last epoch's last.ckpt was
+    saved: ``ckpt_path=last`` must make that stage, not tell the user to resume with ckpt_path=last again
+    (Lightning restores a finished checkpoint and ends without on_train_end)."""
+    from endorecon.callbacks import BootstrapCallback
+    from endorecon.tasks.train import run
+
+    real = BootstrapCallback.on_train_end
+    calls = []
+
+    def stops_once(self, trainer, module):
+        calls.append(trainer.current_epoch)
+        if len(calls) == 1:
+            raise KeyboardInterrupt("stopped during fusion")
+        return real(self, trainer, module)
+
+    monkeypatch.setattr(BootstrapCallback, "on_train_end", stops_once)
+    run_dir = f"paths.run_dir='{tmp_path}/fold=0'"
+    cfg = train_cfg(debug_root, "fold=0", "iteration=0", run_dir)
+    with pytest.raises((KeyboardInterrupt, SystemExit, InputError)):
+        run(cfg)
+    it0 = tmp_path / "fold=0" / "iteration=0"
+    assert (it0 / "checkpoints" / "last.ckpt").is_file() and not (it0 / "metrics.json").exists()
+    assert run(train_cfg(debug_root, "fold=0", "iteration=0", run_dir, "ckpt_path=last")) is not None
+    assert (it0 / "metrics.json").is_file() and len(calls) == 2
+
+
+@pytest.mark.slow
 def test_last_checkpoint_is_the_network_the_iteration_evaluated(debug_run):
     """reconstruct.py, the next iteration's warm start and the results table load last.ckpt: it must hold
     the weights whose held-out depth metrics.json reports (Lightning >= 2.6's save_last could lag)."""
@@ -361,6 +389,35 @@ def test_next_iteration_leaves_out_the_previous_exclusions(tmp_path, keys, exclu
     seq = _four_frame_sequence(tmp_path)
     prep = prepare_sequences(cfg, [seq], _previous_iteration(tmp_path, seq, **keys))[0]
     assert np.flatnonzero(prep.excluded).tolist() == excluded
+
+
+def test_iterations_made_with_other_settings_are_refused(tmp_path):
+    """The fold's run dir does not encode the overrides: an iteration recorded with another resolution or loss
+    weight must not be skipped (and its mesh reported) as this configuration's; settings that do not make the
+    results (workers, targets, accelerator) and keys only one side has are not compared."""
+    from endorecon.tasks.train import check_same_settings, config_differences, iteration_dir
+
+    cfg = train_cfg(tmp_path, "fold=0", "iteration=1")
+    it0 = iteration_dir(cfg, 0) / ".hydra" / "config.yaml"
+    it0.parent.mkdir(parents=True)
+    it0.write_text(OmegaConf.to_yaml(cfg))
+    check_same_settings(cfg)  # the same settings: accepted
+    harmless = train_cfg(tmp_path, "fold=0", "iteration=1", "data.num_workers=0", "bootstrap.targets.max_mm=0.5",
+                         "trainer.accelerator=cpu", "pgo.progress=false", "paths.output_root=/elsewhere")
+    assert config_differences(OmegaConf.load(it0), harmless) == []
+    recorded = OmegaConf.load(it0)
+    recorded.bootstrap.removed_key = 3  # a key this version no longer has
+    del recorded.fusion.c1  # a key added since
+    assert config_differences(recorded, cfg) == []
+    other = train_cfg(tmp_path, "fold=0", "iteration=1", f"data.height={cfg.data.height + 16}", "loss.sparse_flow=1.0")
+    assert config_differences(OmegaConf.load(it0), other) == [
+        f"data.height: {cfg.data.height} -> {cfg.data.height + 16}", "loss.sparse_flow: 100.0 -> 1.0"]
+    with pytest.raises(InputError, match="iteration 0 of fold 0 was made with other settings") as e:
+        check_same_settings(other)
+    assert "data.height" in str(e.value) and "loss.sparse_flow" in str(e.value) and str(it0) in str(e.value)
+    it0.write_text("data: [unclosed")
+    with pytest.raises(InputError, match="unreadable config"):
+        check_same_settings(cfg)
 
 
 @pytest.mark.parametrize("damage", ["truncated", "missing", "not_an_object"])
