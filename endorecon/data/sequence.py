@@ -299,7 +299,11 @@ def read_camera_json(path: str | Path) -> tuple[np.ndarray, int, int, str]:
     try:
         cam = json.loads(path.read_text())
         K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]], dtype=np.float64)
-        if cam.get("pixel_origin", "center") == "corner":
+        origin = cam.get("pixel_origin", "center")
+        if origin not in ("center", "corner"):  # a misspelling read as "center" would shift K by half a pixel
+            raise InputError(f"camera pixel_origin must be \"center\" or \"corner\", got {origin!r}", path,
+                             'write "center" if (cx, cy) count from the first pixel\'s centre (COLMAP: "corner")')
+        if origin == "corner":
             K[0, 2] -= 0.5
             K[1, 2] -= 0.5
         h, w = int(cam["height"]), int(cam["width"])

@@ -9,6 +9,7 @@
         model/                 the largest model (binary)
         result.json            its numbers (registered frames, models, points, time)
     attempts.json              every attempt's numbers, the chosen one, cleaning and scale
+    settings.json              the settings it was made with (other settings: made again, see run())
     model/                     the final model (binary COLMAP, at the input resolution, cleaned, normalised)
     sequence.npz               the final :class:`Sequence` (cam_from_world, clean points, visibility)
 
@@ -310,12 +311,68 @@ def run(cfg_sfm, seq: Sequence, out_dir: str | Path) -> Path:
         SfMError: no attempt gave an acceptable model (and ``allow_partial`` is false).
     """
     out_dir = Path(out_dir)
+    cfg = _cfg(cfg_sfm)
+    settings = _settings(cfg, seq)
+    _forget_other_settings(out_dir, settings)
     if (out_dir / "sequence.npz").is_file() and (out_dir / "attempts.json").is_file():
         log.info("SfM: %s is complete, skipping", out_dir)
         return out_dir
-    cfg = _cfg(cfg_sfm)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out_dir / "settings.json", json.dumps(settings, indent=2, sort_keys=True) + "\n")
     _solve(cfg, _bare(seq), out_dir, list(range(len(cfg["attempts"]))), bool(cfg["allow_partial"]))
     return out_dir
+
+
+def is_complete(cfg_sfm, seq: Sequence, out_dir: str | Path) -> bool:
+    """Whether :func:`run` would skip: a complete result made with these settings (or with unrecorded ones)."""
+    out_dir = Path(out_dir)
+    if not ((out_dir / "sequence.npz").is_file() and (out_dir / "attempts.json").is_file()):
+        return False
+    recorded = _read_settings(out_dir)
+    return recorded is None or recorded == _settings(_cfg(cfg_sfm), seq)
+
+
+# What the SfM-resolution images and the COLMAP attempts are made from; the rest of the settings (cleaning, the
+# acceptance checks, the attempt list, whose entries each attempt's result.json records) only needs the
+# final steps made again.  Logging and threads change nothing that is kept.
+def _settings(cfg: dict, seq: Sequence) -> dict:
+    rest = {k: v for k, v in cfg.items() if k not in ("max_size", "mask_erode_px", "colmap_verbose", "num_threads")}
+    return {"images": {"max_size": cfg["max_size"], "mask_erode_px": cfg["mask_erode_px"],
+                       "frames": [len(seq), seq.height, seq.width],
+                       "intrinsics": np.asarray(seq.intrinsics, dtype=float).round(9).tolist()},
+            "rest": json.loads(json.dumps(rest, sort_keys=True))}
+
+
+def _read_settings(out_dir: Path) -> dict | None:
+    try:
+        return json.loads((out_dir / "settings.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _forget_other_settings(out_dir: Path, settings: dict) -> None:
+    """Remove what ``out_dir`` holds from other settings, so that it is made again with these: the images and
+    every attempt when the SfM size, mask erosion, frames or intrinsics changed (COLMAP ran on other images),
+    only the final result when cleaning or the checks did.  A folder without ``settings.json`` (made before it
+    was recorded) is kept as it is."""
+    import shutil
+
+    recorded = _read_settings(out_dir)
+    if recorded is None or recorded == settings:
+        return
+    stale = ["sequence.npz", "attempts.json", "model"]
+    if recorded.get("images") != settings["images"]:
+        stale += ["images", "mask.png", "attempts"]
+        log.warning("SfM: %s was made at another size, mask erosion or intrinsics; running SfM again", out_dir)
+    else:
+        log.info("SfM: %s was made with other cleaning or checks; choosing and cleaning again", out_dir)
+    for name in stale:
+        p = out_dir / name
+        if p.is_dir():
+            shutil.rmtree(p)
+        elif p.exists():
+            p.unlink()
+    (out_dir / "settings.json").unlink()
 
 
 def load_result(out_dir: str | Path) -> Sequence:

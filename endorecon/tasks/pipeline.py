@@ -102,6 +102,12 @@ def run_sfm(cfg: DictConfig, sequences: list[Sequence], data_root: Path | None =
         out_dir = root / _slug(seq.name)
         sfm_run(cfg.sfm, seq, out_dir)
         res = load_result(out_dir)
+        if [p.name for p in res.frame_paths] != [p.name for p in seq.frame_paths]:
+            raise InputError(f"the SfM cache of {seq.name} lists other frames than the dataset", out_dir,
+                             f"delete {out_dir} so that SfM is run again")
+        # the cache is shared by every working directory that reads this data (its key is the resolved data
+        # path); the frame paths it recorded may be relative to another one
+        res = res.replace(frame_paths=list(seq.frame_paths))
         res.patient = seq.patient
         res.name = seq.name
         out.append(res)

@@ -349,11 +349,12 @@ def run(cfg: DictConfig) -> Path:
     module, train_hw = load_module(ckpt)
     timed("load model", t0)
 
+    from endorecon.sfm.stage import is_complete as sfm_complete
     from endorecon.sfm.stage import load_result
     from endorecon.sfm.stage import run as sfm_run
 
     t0 = time.perf_counter()
-    sfm_done = (out / "sfm" / "sequence.npz").is_file() and (out / "sfm" / "attempts.json").is_file()
+    sfm_done = sfm_complete(cfg.sfm, seq, out / "sfm")
     sfm_run(cfg.sfm, seq, out / "sfm")
     sfm_seq = load_result(out / "sfm")
     timed("sfm", t0, skipped=sfm_done)

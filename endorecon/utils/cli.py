@@ -11,13 +11,20 @@ from endorecon.utils.errors import EndoreconError
 def quote_path_overrides(argv: list[str], keys: tuple[str, ...]) -> list[str]:
     """Quote the values of path overrides (``key=path`` for ``key`` in ``keys``) so that Hydra's grammar
     accepts any path, e.g. one under ``outputs/train/fold=0/iteration=1/`` (an unquoted ``=`` in a value
-    is a Hydra syntax error)."""
+    is a Hydra syntax error).  With ``-m`` / ``--multirun`` a comma separates the paths of a sweep
+    (``input=a.mp4,b.mp4``: two jobs), so each is quoted on its own."""
+    multirun = any(a in ("-m", "--multirun") for a in argv)
+
+    def quote(v: str) -> str:
+        return "'" + v.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
     out = []
     for arg in argv:
         m = re.fullmatch(rf"(\+{{0,2}}(?:{'|'.join(map(re.escape, keys))}))=(.*)", arg, flags=re.S)
-        if m and m.group(2) and m.group(2)[0] not in "'\"" and m.group(2) != "null":
-            val = m.group(2).replace("\\", "\\\\").replace("'", "\\'")
-            arg = f"{m.group(1)}='{val}'"
+        sweep_fn = multirun and m and re.fullmatch(r"(choice|glob|range|sort|shuffle)\(.*\)", m.group(2), flags=re.S)
+        if m and m.group(2) and m.group(2)[0] not in "'\"" and m.group(2) != "null" and not sweep_fn:
+            items = m.group(2).split(",") if multirun else [m.group(2)]
+            arg = f"{m.group(1)}=" + ",".join(v if v == "null" else quote(v) for v in items)
         out.append(arg)
     return out
 

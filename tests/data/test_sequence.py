@@ -60,6 +60,11 @@ def test_camera_json_corner_convention_is_converted(tmp_path):
 
     K, h, w, _ = read_camera_json(p)
     assert (K[0, 2], K[1, 2]) == (31.5, 23.5)
+    for bad in ("Corner", "top-left-corner", None):  # silently read as "center" before: half a pixel off
+        p.write_text(json.dumps(dict(width=W, height=H, fx=40, fy=40, cx=32, cy=24, pixel_origin=bad)))
+        with pytest.raises(InputError, match="pixel_origin") as e:
+            read_camera_json(p)
+        assert "camera.json" in str(e.value)
 
 
 def test_bad_inputs_name_the_file(tmp_path):

@@ -87,6 +87,37 @@ def test_second_run_skips(solved, phantom, cfg, monkeypatch):
     np.testing.assert_allclose(again.points_xyz, res.points_xyz)
 
 
+def test_other_settings_make_sfm_again(solved, phantom, cfg, tmp_path, monkeypatch):
+    """A folder made with another SfM size must not hand COLMAP the new size's intrinsics with the old size's
+    images (nor be skipped as complete); other cleaning redoes only the final steps."""
+    out, res, _ = solved
+    copy = tmp_path / "sfm"
+    shutil.copytree(out, copy)
+    seq = phantom[1]
+    assert stage.is_complete(cfg, seq, copy)
+
+    class Mapped(Exception):
+        pass
+
+    def mapping(*a, **k):
+        raise Mapped
+
+    monkeypatch.setattr(colmap, "run_mapping", mapping)
+    # other cleaning: the attempt is reused, the points are cleaned again
+    stricter = OmegaConf.merge(cfg, {"clean": {"min_track_length": 6}})
+    assert not stage.is_complete(stricter, seq, copy)
+    stage.run(stricter, seq, copy)
+    assert 0 < len(stage.load_result(copy).points_xyz) < len(res.points_xyz)
+    assert stage.is_complete(stricter, seq, copy) and not stage.is_complete(cfg, seq, copy)
+    # another SfM size: new images, COLMAP runs again
+    smaller = OmegaConf.merge(cfg, {"max_size": 160})
+    with pytest.raises(Mapped):
+        stage.run(smaller, seq, copy)
+    with Image.open(copy / "images" / "000000.png") as im, Image.open(copy / "mask.png") as m:
+        assert im.size == m.size == (160, 128)
+    assert not (copy / "sequence.npz").exists()
+
+
 def _black(path, h=192, w=240):
     Image.fromarray(np.zeros((h, w, 3), np.uint8)).save(path)
 

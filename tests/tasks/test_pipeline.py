@@ -306,3 +306,23 @@ def test_held_out_depth_evaluation_scores_invalid_predictions(monkeypatch):
     assert out["n_pixels"] == n * h * w and out["n_invalid_pred"] == n * h * w // 2
     assert out["abs_rel"] > 0.4
     assert np.isfinite(out["std_error_spearman"])  # ranked over the valid predictions
+
+
+def test_sfm_cache_made_from_another_working_directory(tiny, tmp_path, monkeypatch):
+    """The SfM cache is shared by every working directory that reads the data (keyed by its resolved path);
+    frame paths it recorded relative to another directory must not make every frame "missing", and a cache
+    that lists other frames is an error naming it."""
+    import endorecon.sfm.stage as stage
+
+    root, seq, _ = tiny
+    relative = seq.replace(frame_paths=[p.relative_to(root.parent) for p in seq.frame_paths])
+    monkeypatch.setattr(stage, "run", lambda cfg, s, out_dir: out_dir)
+    monkeypatch.setattr(stage, "load_result", lambda out_dir: relative)
+    monkeypatch.chdir(tmp_path)  # the recorded relative paths do not resolve from here
+    cfg = OmegaConf.create({"sfm": {"max_size": 320}, "paths": {"cache_dir": str(tmp_path / "cache")}})
+    got = pipeline.run_sfm(cfg, [seq], root)[0]
+    assert got.frame_paths == seq.frame_paths and got.load_frame(0).shape[:2] == (seq.height, seq.width)
+    other = relative.replace(frame_paths=relative.frame_paths[::-1])
+    monkeypatch.setattr(stage, "load_result", lambda out_dir: other)
+    with pytest.raises(pipeline.InputError, match="SfM cache .* other frames"):
+        pipeline.run_sfm(cfg, [seq], root)

@@ -86,6 +86,15 @@ def test_quote_path_overrides():
                                 "pgo.iterations=3", "input='/q=1'"], ("input", "ckpt", "intrinsics", "mask"))
     assert got == ["ckpt='/a/fold=0/iteration=1/last.ckpt'", "input='/x/it\\'s'", "mask=null", "pgo.iterations=3",
                    "input='/q=1'"]
+    # a multirun sweeps over comma-separated paths: each quoted on its own (one job with "a,b" before)
+    keys = ("input", "mask")
+    assert quote_path_overrides(["-m", "input=/v/a.mp4,/v/f=1/b.mp4", "mask=null,/m.png", "input=choice(a,b)"], keys) \
+        == ["-m", "input='/v/a.mp4','/v/f=1/b.mp4'", "mask=null,'/m.png'", "input=choice(a,b)"]
+    assert quote_path_overrides(["input=/v/a,b.mp4"], keys) == ["input='/v/a,b.mp4'"]  # one run: one path
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(["input='/v/a.mp4','/v/f=1/b.mp4'"])[0]
+    assert parsed.is_sweep_override() and [v.text for v in parsed.value().list] == ["/v/a.mp4", "/v/f=1/b.mp4"]
 
 
 def test_network_size_keeps_area_aspect_and_stride():
