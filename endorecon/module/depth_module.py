@@ -261,6 +261,11 @@ class DepthModule(L.LightningModule):
         B = batch["image_i"].shape[0]
         log = functools.partial(self.log, on_step=True, on_epoch=True, batch_size=B)
         if not torch.isfinite(total):
+            if self.trainer is not None and self.trainer.world_size > 1:
+                # Lightning refuses a None from a distributed training step (the whole fit stopped): the
+                # non-finite loss gives non-finite gradients, all-reduced to every rank, and
+                # on_before_optimizer_step drops the step on all of them alike (and counts it)
+                return total
             self.skipped_batches += 1
             log("train/skipped_batches", float(self.skipped_batches))
             return None
@@ -315,13 +320,16 @@ class DepthModule(L.LightningModule):
         make = hydra.utils.instantiate(model["scheduler"])
         kwargs = {}
         func = getattr(make, "func", None)
+        interval = model.get("scheduler_interval", "step")
         if func is torch.optim.lr_scheduler.OneCycleLR and not ({"total_steps", "epochs"} & set(make.keywords)):
-            steps = self.trainer.estimated_stepping_batches
-            if not (0 < steps < float("inf")):
-                raise ValueError("OneCycleLR needs a finite schedule: set trainer max_epochs/max_steps or total_steps")
+            # one cycle over the run, in the unit the scheduler steps in (an epoch-stepped cycle as long as the
+            # run's batches never annealed)
+            steps = self.trainer.max_epochs if interval == "epoch" else self.trainer.estimated_stepping_batches
+            if steps is None or not (0 < steps < float("inf")):
+                raise ValueError("OneCycleLR needs a finite schedule: set trainer max_epochs (max_steps for a "
+                                 "step-wise schedule) or the scheduler's total_steps")
             kwargs["total_steps"] = int(steps)
         scheduler = make(optimizer, **kwargs)
-        interval = model.get("scheduler_interval", "step")
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": interval}}
 
     # ------------------------------------------------------------------ images

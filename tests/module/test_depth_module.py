@@ -372,3 +372,42 @@ def test_flip_average_in_predict_only_and_kept_in_the_checkpoint(tmp_path):
     assert DepthModule(_model_cfg()).flip_average is False  # checkpoints made before it: off
     with pytest.raises(ValueError, match="flip_average"):
         DepthModule(_model_cfg(flip_average="yes"))
+
+
+@pytest.mark.parametrize("interval", ["step", "epoch"])
+def test_one_cycle_anneals_over_the_run_in_its_interval(tmp_path, interval):
+    """OneCycleLR's length is filled in from the run: in steps for a step-wise schedule, in epochs for an
+    epoch-wise one (it was the number of batches for both: an epoch-wise cycle never annealed)."""
+    lrs = []
+
+    class Record(L.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+    module = DepthModule(_model_cfg(scheduler_interval=interval))
+    trainer = L.Trainer(default_root_dir=tmp_path, max_epochs=5, accelerator="cpu", logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                        callbacks=[Record()])
+    trainer.fit(module, DataLoader([make_batch()] * 4, batch_size=None))
+    sched = trainer.lr_scheduler_configs[0].scheduler
+    assert sched.total_steps == (5 if interval == "epoch" else 20)
+    assert max(lrs) > 0.5 * 3e-3 and lrs[-1] < 0.01 * 3e-3  # up to ~max_lr, then down to ~0 in the last steps
+
+
+@pytest.mark.slow
+def test_non_finite_batch_is_skipped_under_ddp(tmp_path):
+    """Distributed training (trainer=ddp): a non-finite loss on one rank must skip that step on every rank
+    and go on (returning None there stopped the whole fit: Lightning refuses it in distributed training)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).with_name("ddp_nonfinite_run.py")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).parents[2])}
+    run = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, timeout=300,
+                         env=env, cwd=tmp_path)
+    results = sorted(line.split()[1:] for line in run.stdout.splitlines() if line.startswith("RESULT"))
+    assert run.returncode == 0 and len(results) == 2, run.stdout[-2000:] + run.stderr[-3000:]
+    assert [r[1] for r in results] == ["1", "1"]  # the step was skipped on both ranks
+    assert results[0][2] == results[1][2]  # and the ranks' weights stayed the same
