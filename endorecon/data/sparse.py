@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -230,7 +231,7 @@ class SparseCache:
                     mask=f["mask"],
                     fingerprint=str(meta.get("fingerprint", "")),
                 )
-        except (KeyError, ValueError, OSError) as e:
+        except (KeyError, ValueError, OSError, zipfile.BadZipFile, EOFError) as e:  # a cut file is a BadZipFile
             raise InputError(f"corrupt sparse cache ({e})", path, "delete it; it is rebuilt from the sequence") from e
 
     def matches(self, seq: Sequence) -> bool:

@@ -45,8 +45,8 @@ def load_mesh_arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray]:
         return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.triangles, dtype=np.int64)
     if isinstance(mesh, o3d.t.geometry.TriangleMesh):
         return (
-            mesh.vertex.positions.numpy().astype(np.float64),
-            mesh.triangle.indices.numpy().astype(np.int64),
+            mesh.vertex.positions.cpu().numpy().astype(np.float64),  # fusion on CUDA:0 gives a device mesh
+            mesh.triangle.indices.cpu().numpy().astype(np.int64),
         )
     if isinstance(mesh, (tuple, list)) and len(mesh) == 2:
         v = np.asarray(mesh[0], dtype=np.float64)

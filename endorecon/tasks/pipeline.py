@@ -181,8 +181,15 @@ def fuse_sequence(cfg_fusion, seq: Sequence, depth, std, colors, cam_from_world,
 
 def render_simulated(mesh, seq: Sequence, cam_from_world: np.ndarray):
     """Simulated depth: the fused mesh rendered at every frame's pose. -> depth (N,H,W) f32, valid (N,H,W) bool."""
+    import open3d as o3d
+
     from endorecon.rendering.raycast import render_depth
 
+    if isinstance(mesh, o3d.t.geometry.TriangleMesh) and ("indices" not in mesh.triangle or
+                                                          len(mesh.triangle.indices) == 0):
+        raise InputError(f"{seq.name}: fusion gave an empty mesh ({len(seq)} frames): no surface was seen by "
+                         f"fusion.mesh_weight_threshold frames, or no depth was usable",
+                         fix="use a longer clip, or lower fusion.mesh_weight_threshold (default 4)")
     return render_depth(mesh, seq.intrinsics, cam_from_world, seq.height, seq.width, mask=seq.mask)
 
 

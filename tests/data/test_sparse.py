@@ -194,6 +194,8 @@ def test_load_or_build_rebuilds_when_poses_change(tmp_path, scene):
     c3 = load_or_build_sparse_cache(seq.replace(cam_from_world=T2), path)
     assert c3.fingerprint != c1.fingerprint
     assert not np.allclose(c3.frame_points(1)[1], c1.frame_points(1)[1])
+    path.write_bytes(path.read_bytes()[:100])  # cut short: rebuilt (was a raw BadZipFile)
+    assert load_or_build_sparse_cache(seq, path).fingerprint == c1.fingerprint
 
 
 def test_bad_input(tmp_path, scene):

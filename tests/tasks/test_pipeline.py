@@ -326,3 +326,12 @@ def test_sfm_cache_made_from_another_working_directory(tiny, tmp_path, monkeypat
     monkeypatch.setattr(stage, "load_result", lambda out_dir: other)
     with pytest.raises(pipeline.InputError, match="SfM cache .* other frames"):
         pipeline.run_sfm(cfg, [seq], root)
+
+
+def test_empty_fused_mesh_names_the_fusion_setting(tiny):
+    import open3d as o3d
+
+    _, seq, gt = tiny
+    with pytest.raises(pipeline.InputError, match="mesh_weight_threshold") as e:
+        pipeline.render_simulated(o3d.t.geometry.TriangleMesh(), seq, gt.cam_from_world)
+    assert seq.name in str(e.value)
