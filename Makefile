@@ -4,6 +4,10 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 ARGS   ?=
 PYTEST_ARGS ?=
+# A CPU torch wheel among pip's find-links (this machine: /opt/wheels) is used as it is; else PyTorch's CPU index.
+TORCH_INDEX ?= $(shell for d in $${PIP_FIND_LINKS:-} $$($(PYTHON) -m pip config get global.find-links 2>/dev/null); do \
+  ls "$$d"/torch-2.13.0+cpu-*.whl >/dev/null 2>&1 && exit 0; done; \
+  echo --extra-index-url https://download.pytorch.org/whl/cpu)
 
 .PHONY: venv sysdeps train test test-fast reconstruct evaluate phantom clean
 
@@ -21,8 +25,9 @@ sysdeps:
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	# The pinned CPU wheel first: an unpinned torch would pull a multi-GB CUDA build.
-	$(BIN)/pip install -q torch==2.13.0
+	# The pinned CPU wheel first: an unpinned torch would pull a multi-GB CUDA build (and PyPI's torch==2.13.0
+	# is the CUDA build too: without a local CPU wheel, PyTorch's CPU index is asked).
+	$(BIN)/pip install -q torch==2.13.0 $(TORCH_INDEX)
 
 $(VENV)/.installed: pyproject.toml | $(BIN)/python
 	$(BIN)/pip install -q -e ".[dev]"

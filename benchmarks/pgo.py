@@ -8,7 +8,7 @@ the current poses (the cost before freezing).  ``flow_at_points=false`` evaluate
 dense flow maps at every pixel (the cost before the points were back-projected once per edge).  Scene: the tests' analytic cavity (tests/pgo/synthetic_scene.py)
 at the CPU default's PGO size (64x80, half the 128x160 network resolution), 30 frames, neighbours 5-8 both
 ways, depth with a smooth 3 % error, poses off by ~0.1° / 0.3 % of the depth (about SfM's on the phantom),
-flow with 0.2 px noise, the default 10 L-BFGS iterations.
+flow with 0.2 px noise, the settings of conf/pgo/default.yaml (10 L-BFGS iterations).
 
     .venv/bin/python benchmarks/pgo.py [--frames 30] [--repeats 3] [--threads 1]
 """
@@ -55,6 +55,12 @@ def main() -> None:
     T_init = se3_exp(xi) @ scene.cam_from_world
     flow_fn = lambda i, j: scene.sparse_flow_fn(i, j, noise_px=0.2)  # noqa: E731
 
+    # the pipeline's settings (conf/pgo/default.yaml: 10 L-BFGS iterations), not optimize_poses' own defaults
+    from omegaconf import OmegaConf
+
+    conf = {k: v for k, v in OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "pgo" / "default.yaml")).items()
+            if k not in ("enabled", "resolution_scale")}
+    conf["progress"] = False
     variants = {
         "frozen, cached (default)": {},
         "frozen, carried per evaluation": {"std_cache_mb": 0},
@@ -66,11 +72,12 @@ def main() -> None:
         for name, over in variants.items():
             t = time.perf_counter()
             results[name] = optimize_poses(depth, std, scene.K.float(), T_init, scene.mask, flow_fn,
-                                           {"progress": False, **over})
+                                           {**conf, **over})
             times.setdefault(name, []).append(time.perf_counter() - t)
 
     base = statistics.median(times["frozen, cached (default)"])
-    print(f"PGO, {n} frames 64x80, {len(results['frozen, cached (default)'].edges)} edges, 10 L-BFGS iterations, "
+    print(f"PGO, {n} frames 64x80, {len(results['frozen, cached (default)'].edges)} edges, "
+          f"{len(results['frozen, cached (default)'].history)} L-BFGS iterations (conf/pgo/default.yaml), "
           f"{args.threads} thread(s), median of {args.repeats}:")
     ref = results["frozen, cached (default)"].cam_from_world
     for name, ts in times.items():

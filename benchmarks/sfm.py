@@ -4,7 +4,9 @@ Phantom: registered fraction, camera-centre RMSE after Sim(3) (Umeyama on the ce
 the GT trajectory length, mean relative-rotation error of consecutive frames, median distance of the
 sparse points (after the same Sim(3)) to the GT mesh in mm.
 sinus_example (1920x1080 -> 960x540): registered frames and the same trajectory numbers against the
-shipped motion.yaml (SfM units).  Time per frame = the stage's wall time / frames (all attempts).
+shipped motion.yaml (SfM units).  Time per frame = the stage's wall time / frames (all attempts).  The
+peer: the phantom's SfM again with one thread (``sfm.num_threads=1``, which makes runs reproducible), and
+the ratio of the two wall times.
 
     .venv/bin/python benchmarks/sfm.py                     # phantom 40 frames 256x320 + sinus_example
     .venv/bin/python benchmarks/sfm.py --skip-sinus --frames 20
@@ -61,6 +63,7 @@ def main() -> None:
     ap.add_argument("--fresh", action="store_true")
     ap.add_argument("--skip-sinus", action="store_true")
     ap.add_argument("--skip-phantom", action="store_true")
+    ap.add_argument("--skip-peer", action="store_true", help="no single-thread run of the phantom (the peer)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.fresh and args.work.exists():
@@ -77,7 +80,15 @@ def main() -> None:
         seq = load_dataset(ph)[0]
         gt = load_ground_truth(ph, 0)
         out = stage.run(cfg, seq, args.work / f"sfm_phantom_{args.frames}")
-        _report("phantom", out, stage.load_result(out), gt.cam_from_world, gt.mesh_path)
+        row = _report("phantom", out, stage.load_result(out), gt.cam_from_world, gt.mesh_path)
+        if not args.skip_peer:
+            # the peer: the same stage with one thread (sfm.num_threads=1, the reproducible setting)
+            one = OmegaConf.merge(cfg, {"num_threads": 1})
+            out1 = stage.run(one, seq, args.work / f"sfm_phantom_{args.frames}_1thread")
+            row1 = _report("phantom, sfm.num_threads=1", out1, stage.load_result(out1), gt.cam_from_world,
+                           gt.mesh_path)
+            print(f"all threads vs one: {row['seconds']:.1f} vs {row1['seconds']:.1f} s "
+                  f"(x{row1['seconds'] / row['seconds']:.2f} faster with all threads)")
 
     if not args.skip_sinus:
         from endorecon.data.original import load_original

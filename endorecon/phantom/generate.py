@@ -51,6 +51,9 @@ DEFAULT_PATIENTS = 14
 __all__ = ["generate", "ensure_dataset", "generator_defaults", "DEFAULT_PATIENTS", "render_video", "FORMAT", "VERSION"]
 
 
+DEFAULT_JPEG_QUALITY = 92
+
+
 def _seed(*parts: int) -> np.random.Generator:
     return np.random.default_rng([int(p) for p in parts])
 
@@ -154,7 +157,7 @@ def generate(
     fov_deg: float = 100.0,
     step_mm: float = 0.35,
     motion_blur: int = 0,
-    jpeg_quality: int = 92,
+    jpeg_quality: int = DEFAULT_JPEG_QUALITY,
     progress: bool = False,
 ) -> Path:
     """Generate a phantom dataset into ``out`` (replacing it atomically) and return ``out``.
@@ -243,6 +246,10 @@ def generate(
                 "mesh": None if mesh is None else str(Path(mesh).resolve()),
                 "patients": meta_patients,
             }
+            if int(jpeg_quality) != DEFAULT_JPEG_QUALITY:
+                meta["jpeg_quality"] = int(jpeg_quality)
+            if waypoints is not None:
+                meta["waypoints"] = _plain(waypoints)
             (tmp / "dataset.json").write_text(json.dumps(meta, indent=2) + "\n")
             (tmp / "COMPLETE").write_text("ok\n")
     finally:
@@ -319,6 +326,20 @@ def generator_defaults() -> dict:
             if p.default is not inspect.Parameter.empty and k != "progress"}
 
 
+def _plain(waypoints: Any) -> list | None:
+    """Waypoints as nested lists of floats (as dataset.json records them), or None."""
+    if waypoints is None:
+        return None
+    try:
+        from omegaconf import OmegaConf
+
+        if OmegaConf.is_config(waypoints):
+            waypoints = OmegaConf.to_container(waypoints, resolve=True)
+    except ImportError:  # pragma: no cover
+        pass
+    return np.asarray(waypoints, dtype=np.float64).tolist()
+
+
 def _read_meta(root: Path) -> dict | None:
     try:
         return json.loads((root / "dataset.json").read_text())
@@ -354,7 +375,14 @@ def ensure_dataset(cfg: Any, root: str | Path | None = None) -> Path:
         fov_deg=float(get("fov_deg", d["fov_deg"])),
         step_mm=float(get("step_mm", d["step_mm"])),
         motion_blur=int(get("motion_blur", d["motion_blur"]) or 0),
+        jpeg_quality=int(get("jpeg_quality", d["jpeg_quality"])),
+        waypoints=_plain(get("waypoints", d["waypoints"])),
     )
+    keys = list(cfg.keys()) if hasattr(cfg, "keys") else []
+    unknown = sorted(set(map(str, keys)) - set(d) - {"root"})
+    if unknown:  # a misspelt setting would otherwise be ignored and the default phantom reused
+        raise InputError(f"unknown phantom setting(s) {unknown}; known: {sorted(d)}",
+                         fix="fix the key under data.phantom")
     if (root / "COMPLETE").is_file():
         meta = _read_meta(root)
         if meta is None or meta.get("format") != FORMAT:
@@ -374,6 +402,10 @@ def ensure_dataset(cfg: Any, root: str | Path | None = None) -> Path:
             and len(meta.get("patients", [])) == kw["patients"]
             and all(len(p["sequences"]) == kw["sequences"] for p in meta["patients"])
             and meta.get("mesh") == (None if kw["mesh"] is None else str(Path(kw["mesh"]).resolve()))
+            # recorded only where not the default (the default phantom's dataset.json, the SfM cache's key,
+            # stays as it was)
+            and meta.get("jpeg_quality", d["jpeg_quality"]) == kw["jpeg_quality"]
+            and meta.get("waypoints") == kw["waypoints"]
         )
         if same:
             return root

@@ -173,8 +173,16 @@ def _with_max_lr(model_hp, max_lr: float):
     from omegaconf import DictConfig, OmegaConf
 
     m = OmegaConf.to_container(model_hp, resolve=True) if isinstance(model_hp, DictConfig) else copy.deepcopy(model_hp)
-    if m.get("scheduler"):
+    one_cycle = "torch.optim.lr_scheduler.OneCycleLR"
+    if m.get("scheduler") and m["scheduler"].get("_target_") == one_cycle:
         m["scheduler"]["max_lr"] = max_lr
+    elif m.get("scheduler"):
+        # another schedule takes no max_lr (CosineAnnealingLR crashed on it): the adaptation runs its own short
+        # one-cycle schedule instead
+        log.info("adaptation: a one-cycle schedule to max_lr %g in place of the checkpoint's %s", max_lr,
+                 m["scheduler"].get("_target_"))
+        m["scheduler"] = {"_target_": one_cycle, "_partial_": True, "max_lr": max_lr, "pct_start": 0.1}
+        m["scheduler_interval"] = "step"
     elif m.get("optimizer"):
         m["optimizer"]["lr"] = max_lr
     return m

@@ -66,6 +66,15 @@ def run(cfg: DictConfig) -> Path:
             "only one of trajectory / gt_trajectory is given", given,
             "pass both (reconstruction poses.txt and ground-truth poses.txt) or neither",
         )
+    init = str((cfg.get("registration") or {}).get("init", "auto"))
+    inits = ("auto", "trajectory", "global", "identity")
+    if init not in inits:  # before any mesh is read and sampled
+        raise InputError(f"registration.init={init!r} is not one of {', '.join(inits)}",
+                         fix="pass registration.init=auto (trajectory when given, else global)")
+    if init == "trajectory" and traj is None:
+        raise InputError("registration.init=trajectory needs the camera trajectories",
+                         fix="pass trajectory=<reconstruction poses.txt> gt_trajectory=<ground-truth poses.txt>, "
+                             "or registration.init=auto")
     kw = {}
     if traj is not None:
         cams, gts, rots, gt_rots = load_trajectories(traj, gt_traj)

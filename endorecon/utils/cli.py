@@ -16,7 +16,10 @@ def quote_path_overrides(argv: list[str], keys: tuple[str, ...]) -> list[str]:
     multirun = any(a in ("-m", "--multirun") for a in argv)
 
     def quote(v: str) -> str:
-        return "'" + v.replace("\\", "\\\\").replace("'", "\\'") + "'"
+        # inside a quoted Hydra string a backslash escapes only before a quote or at the end of the string
+        v = re.sub(r"(\\*)'", lambda m: m.group(1) * 2 + "\\'", v)
+        v = re.sub(r"(\\+)$", lambda m: m.group(1) * 2, v)
+        return "'" + v + "'"
 
     out = []
     for arg in argv:

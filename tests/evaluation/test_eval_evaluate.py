@@ -223,6 +223,20 @@ def test_task_with_trajectory(ct_mesh, ct_path, recon_from_ct, helpers, tmp_path
     assert e.value.path.name == "still.txt"
 
 
+def test_bad_registration_init_is_named_before_any_work(ct_path, tmp_path, monkeypatch):
+    """A misspelt registration.init, or init=trajectory without trajectories: an InputError naming the key
+    (exit status 2), not a ValueError traceback after the meshes were read and sampled."""
+    import endorecon.tasks.evaluate as task
+
+    monkeypatch.setattr(task, "evaluate_mesh", lambda *a, **k: pytest.fail("evaluated with a bad init"))
+    for init, match in (("globl", "registration.init='globl' is not one of"),
+                        ("trajectory", "registration.init=trajectory needs")):
+        cfg = _cfg(mesh=str(ct_path), reference=str(ct_path), out=str(tmp_path / "o"), registration={"init": init})
+        with pytest.raises(InputError, match=match):
+            run(cfg)
+    assert not (tmp_path / "o").exists()
+
+
 def test_config_composes(tmp_path):
     from hydra import compose, initialize_config_dir
 

@@ -149,6 +149,14 @@ def test_ensure_dataset_reuses_and_bad_input(tmp_path):
     ensure_dataset({**cfg, "step_mm": 0.2})
     assert json.loads((root / "dataset.json").read_text())["step_mm"] == 0.2
     assert (root / "COMPLETE").stat().st_mtime_ns != stamp
+    # the JPEG quality reaches the generator and is checked (it was dropped: the default frames reused)
+    assert "jpeg_quality" not in json.loads((root / "dataset.json").read_text())  # default: dataset.json as before
+    size = (root / "patient_00" / "seq_00" / "frames" / "000000.jpg").stat().st_size
+    ensure_dataset({**cfg, "step_mm": 0.2, "jpeg_quality": 20})
+    assert json.loads((root / "dataset.json").read_text())["jpeg_quality"] == 20
+    assert (root / "patient_00" / "seq_00" / "frames" / "000000.jpg").stat().st_size < size
+    with pytest.raises(InputError, match="jpeg_qualty"):
+        ensure_dataset({**cfg, "jpeg_qualty": 20})
     with pytest.raises(InputError):
         load_dataset(tmp_path / "missing")
     (root / "COMPLETE").unlink()

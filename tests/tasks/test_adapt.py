@@ -75,6 +75,20 @@ def test_adaptation_lowers_the_video_loss_and_leaves_hparams(prepared):
     assert m.warmup_epochs == 1 and m._trainer is None and not m.training
 
 
+def test_checkpoint_with_another_schedule_is_adapted(prepared):
+    """A network trained with a schedule that takes no max_lr (cosine): adaptation crashed in
+    configure_optimizers; it runs its own one-cycle schedule and leaves the checkpoint's hparams as they were."""
+    torch.manual_seed(0)
+    cosine = {**MODEL, "scheduler": {"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial_": True,
+                                     "T_max": 100}, "scheduler_interval": "epoch"}
+    m = DepthModule(cosine, {"warmup_epochs": 1})
+    m.hparams["input_hw"] = [H, W]
+    info = adapt.adapt_module(m.eval(), DATA, prepared, FAST)
+    assert info["steps"] == 2 * 6 and np.isfinite(info["loss_after"])
+    assert m.hparams["model"]["scheduler"]["_target_"].endswith("CosineAnnealingLR")
+    assert m.hparams["model"]["scheduler_interval"] == "epoch"
+
+
 def test_weights_restored_when_the_loss_does_not_go_down(prepared, monkeypatch):
     m = module()
     before = {k: v.clone() for k, v in m.state_dict().items()}

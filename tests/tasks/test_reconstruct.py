@@ -95,6 +95,11 @@ def test_quote_path_overrides():
 
     parsed = OverridesParser.create().parse_overrides(["input='/v/a.mp4','/v/f=1/b.mp4'"])[0]
     assert parsed.is_sweep_override() and [v.text for v in parsed.value().list] == ["/v/a.mp4", "/v/f=1/b.mp4"]
+    # Hydra reads back the very path (a backslash inside a path was doubled before)
+    parser = OverridesParser.create()
+    for path in ["/tmp/a\\b/c.ply", "/x/it's", "/x/a\\'b", "/x/end\\", "/q=1/x"]:
+        arg = quote_path_overrides([f"input={path}"], keys)[0]
+        assert parser.parse_overrides([arg])[0].value() == path, (path, arg)
 
 
 def test_network_size_keeps_area_aspect_and_stride():
