@@ -17,7 +17,7 @@ import numpy as np
 
 from endorecon.data.sequence import list_frames, read_camera_json
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_dir, atomic_write_text
+from endorecon.utils.io import atomic_dir, atomic_write_text, file_id
 
 log = logging.getLogger(__name__)
 
@@ -48,8 +48,18 @@ def extract_frames(video: str | Path, out_dir: str | Path, stride: int = 1, max_
     from rich.progress import Progress
 
     video, out_dir = Path(video), Path(out_dir)
+    request = dict(source=file_id(video) if video.is_file() else None, start=start, stride=stride,
+                   max_frames=max_frames)
     if (out_dir / "decode.json").is_file():
-        return list_frames(out_dir)
+        try:
+            done = json.loads((out_dir / "decode.json").read_text())
+        except (OSError, ValueError):
+            done = {}
+        if all(done.get(k) == v for k, v in request.items()):
+            return list_frames(out_dir)
+        # another video or frame selection (a run stopped before it recorded its input), or a record from
+        # before the request was kept: decode again, replacing the folder as a whole
+        log.info("%s holds frames of another video or selection: decoding %s again", out_dir, video)
     if not video.is_file():
         raise InputError("video file does not exist", video, "pass input=<video file or frames folder>")
     if stride < 1 or start < 0 or (max_frames is not None and max_frames < 1):
@@ -69,6 +79,9 @@ def extract_frames(video: str | Path, out_dir: str | Path, stride: int = 1, max_
         w, h = (int(v) for v in meta["size"])
         fps, duration = float(meta.get("fps") or 0), float(meta.get("duration") or 0)
         expected = int(round(fps * duration)) if fps > 0 and duration > 0 else None
+        # the header's duration is the container's: with an audio track it may be the audio's, longer than the
+        # video (a complete file was refused as truncated); then a shortfall is only a warning
+        audio = bool(meta.get("audio_codec"))
         declared = avi_declared_frames(video)
         if declared:  # an AVI without its index reports a duration estimated from the file size: not a check
             expected = declared
@@ -94,8 +107,12 @@ def extract_frames(video: str | Path, out_dir: str | Path, stride: int = 1, max_
                 gen.close()
         # Truncation: ffmpeg stops quietly at the end of the data; the header still announces the full length.
         # (Containers round duration x fps: allow 5 % + 1 frame of slack.)
-        truncated = not stopped_early and (error is not None or
-                                           (expected is not None and decoded < 0.95 * expected - 1))
+        short = not stopped_early and expected is not None and decoded < 0.95 * expected - 1
+        truncated = not stopped_early and (error is not None or (short and not audio))
+        if short and audio and error is None:
+            log.warning("%s: %d frames decoded, the container's duration (%.2f s, audio included) allows %d: the "
+                        "audio track may be longer than the video, or the video is cut", video, decoded, duration,
+                        expected)
         what = f"decoded {decoded} frame(s)" + (f" of the {expected} its header announces" if expected else "") \
             + (f"; decoder error: {error}" if error else "")
         if kept < 3:
@@ -107,7 +124,8 @@ def extract_frames(video: str | Path, out_dir: str | Path, stride: int = 1, max_
             log.warning("%s: truncated video, using the %d decoded frames (%s)", video, kept, what)
         atomic_write_text(tmp / "decode.json", json.dumps(dict(
             video=str(video), size=[h, w], fps=fps, duration_s=duration, expected=expected, decoded=decoded,
-            frames=kept, start=start, stride=stride, truncated=truncated, error=error), indent=2) + "\n")
+            frames=kept, start=start, stride=stride, truncated=truncated, error=error, audio=audio,
+            source=request["source"], max_frames=max_frames), indent=2) + "\n")
     return list_frames(out_dir)
 
 
@@ -138,7 +156,8 @@ def _short(e: BaseException) -> str:
 
 
 def read_intrinsics(path: str | Path, pixel_origin: str = "corner") -> np.ndarray:
-    """Intrinsics from ``camera.json`` or a text file whose first line is ``fx fy cx cy``.
+    """Intrinsics from ``camera.json``, a text file whose first line is ``fx fy cx cy``, or the original
+    method's ``camera_intrinsics_per_view`` (fx, fy, cx, cy one a line).
 
     Text files carry no convention: ``pixel_origin`` says whether (cx, cy) count
     from the top-left pixel's corner (COLMAP, the original method) or centre.
@@ -153,13 +172,20 @@ def read_intrinsics(path: str | Path, pixel_origin: str = "corner") -> np.ndarra
     if path.suffix == ".json":
         return read_camera_json(path)[0]
     try:
-        first = next(ln for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#"))
-        vals = [float(v) for v in first.replace(",", " ").split()]
+        lines = [ln.replace(",", " ").split() for ln in path.read_text().splitlines()
+                 if ln.strip() and not ln.lstrip().startswith("#")]
+        if not lines:
+            raise ValueError("no numbers")
+        if len(lines[0]) == 1 and len(lines) >= 4 and all(len(ln) == 1 for ln in lines[:4]):
+            vals = [float(ln[0]) for ln in lines[:4]]  # the original method's file: fx, fy, cx, cy one a line
+        else:
+            vals = [float(v) for v in lines[0]]
         if len(vals) < 4:
             raise ValueError(f"{len(vals)} numbers")
         fx, fy, cx, cy = vals[:4]
-    except (StopIteration, ValueError, UnicodeDecodeError) as e:
-        raise InputError(f"expected a first line 'fx fy cx cy' ({e})", path, "write fx fy cx cy in pixels") from e
+    except (ValueError, UnicodeDecodeError) as e:
+        raise InputError(f"expected a first line 'fx fy cx cy', or fx, fy, cx, cy one a line ({e})", path,
+                         "write fx fy cx cy in pixels") from e
     shift = 0.5 if pixel_origin == "corner" else 0.0
     K = np.array([[fx, 0, cx - shift], [0, fy, cy - shift], [0, 0, 1]], dtype=np.float64)
     if not np.isfinite(K).all() or fx <= 0 or fy <= 0:

@@ -30,6 +30,14 @@ def _view_directions(vertices: np.ndarray, n_views: int) -> list[tuple[np.ndarra
     return dirs[:n_views]
 
 
+def _fit_distance(radius: float, fov_deg: float, height: int, width: int) -> float:
+    """Distance from the centre at which a sphere of ``radius`` fits the view whatever its orientation:
+    ``fov_deg`` spans the width, so the narrower side (here the height, along which the views put the mesh's
+    longest axis) sets it (sized by the width, the ends of the mesh were cut off)."""
+    half = np.arctan(np.tan(np.deg2rad(fov_deg) / 2) * min(height, width) / width)
+    return 1.05 * radius / np.sin(half)
+
+
 def render_scalar_views(
     mesh: o3d.geometry.TriangleMesh,
     vertex_values: np.ndarray,
@@ -59,7 +67,7 @@ def render_scalar_views(
     if not np.isfinite(radius) or radius <= 1e-9 * max(1.0, float(np.abs(centre).max())):
         # A degenerate (collapsed) mesh: ray casting it can take minutes; show nothing instead.
         return [np.ones((height, width, 3)) for _ in range(n_views)]
-    dist = 1.05 * radius / np.sin(np.deg2rad(fov_deg) / 2)
+    dist = _fit_distance(radius, fov_deg, height, width)
     colormap = plt.get_cmap(cmap)
     images = []
     for view_dir, up in _view_directions(v, n_views):
@@ -212,7 +220,8 @@ def shade_view(renderer, vertex_rgb: np.ndarray, K: np.ndarray, cam_from_world: 
     return img
 
 
-def _preview_cameras(vertices: np.ndarray, cam_from_world: np.ndarray | None, fov_deg: float):
+def _preview_cameras(vertices: np.ndarray, cam_from_world: np.ndarray | None, fov_deg: float, height: int,
+                     width: int):
     """(title, cam_from_world) of the preview views: an endoscope-like view behind the middle registered camera
     (if poses are given) and an overview from outside along the mesh's thinnest axis."""
     centre = 0.5 * (vertices.min(0) + vertices.max(0))
@@ -230,10 +239,10 @@ def _preview_cameras(vertices: np.ndarray, cam_from_world: np.ndarray | None, fo
             views.append(("endoscope view (stepped back)", look_at(eye_back, eye_back + fwd, -down)))
             # the overview looks from the side the cameras are on (inside the cavity)
             side = Vt[2] if (eye - centre) @ Vt[2] >= 0 else -Vt[2]
-            dist = 1.05 * radius / np.sin(np.deg2rad(fov_deg) / 2)
+            dist = _fit_distance(radius, fov_deg, height, width)
             views.append(("overview", look_at(centre + dist * side, centre, Vt[0])))
             return views
-    dist = 1.05 * radius / np.sin(np.deg2rad(fov_deg) / 2)
+    dist = _fit_distance(radius, fov_deg, height, width)
     views.append(("overview", look_at(centre - dist * Vt[2], centre, Vt[0])))
     views.append(("overview (other side)", look_at(centre + dist * Vt[2], centre, Vt[0])))
     return views
@@ -242,7 +251,7 @@ def _preview_cameras(vertices: np.ndarray, cam_from_world: np.ndarray | None, fo
 def render_mesh_preview(mesh_path: str | Path, png_path: str | Path, K: np.ndarray | None = None,
                         cam_from_world: np.ndarray | None = None, height: int | None = None,
                         width: int | None = None, size: tuple[int, int] = (300, 380), fov_deg: float = 60.0,
-                        show_std: bool = True, title: str | None = None) -> Path:
+                        show_std: bool = True, title: str | None = None, units: str = "mesh units") -> Path:
     """PNG of a (fused) mesh: shaded vertex colours from two viewpoints, plus its per-vertex std if it has one.
 
     Args:
@@ -252,6 +261,7 @@ def render_mesh_preview(mesh_path: str | Path, png_path: str | Path, K: np.ndarr
         K, cam_from_world (N, 4, 4), height, width: the cameras that saw the mesh (optional); with them the first
             view is an endoscope-like view from behind the middle camera, else two outside views.
         size: (height, width) of each rendered view.
+        units: the mesh's length unit, for the std colour bar's label.
     """
     from endorecon.fusion.ply import read_mesh_ply
     from endorecon.rendering.raycast import MeshRenderer
@@ -278,7 +288,7 @@ def render_mesh_preview(mesh_path: str | Path, png_path: str | Path, K: np.ndarr
     renderer = MeshRenderer((verts, tris))
     H, W = size
     Kp = _pinhole(fov_deg, H, W)
-    views = _preview_cameras(verts, cam_from_world, fov_deg)
+    views = _preview_cameras(verts, cam_from_world, fov_deg, H, W)
     panels = [(name, shade_view(renderer, rgb, Kp, T, H, W)) for name, T in views]
     std_img = None
     if show_std and std is not None and np.isfinite(std).any():
@@ -298,6 +308,6 @@ def render_mesh_preview(mesh_path: str | Path, png_path: str | Path, K: np.ndarr
         ax.set_title("per-vertex std (overview)", fontsize=9)
         ax.set_axis_off()
         sm = plt.cm.ScalarMappable(cmap="magma", norm=matplotlib.colors.Normalize(lo, hi))
-        fig.colorbar(sm, ax=ax, fraction=0.046, pad=0.02)
+        fig.colorbar(sm, ax=ax, fraction=0.046, pad=0.02, label=f"fused std ({units})")
     fig.suptitle(title or f"{mesh_path.name}: {len(verts)} vertices, {len(tris)} triangles", fontsize=10)
     return _save(fig, png_path)

@@ -360,9 +360,11 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
     # 4. fuse again with refined poses and without flagged frames; render for the next iteration.
     t0 = time.perf_counter()
     keep = use & ~flagged
-    if not keep.any():
+    all_flagged = not keep.any() and bool(use.any())
+    if all_flagged:
         log.warning("%s: every frame flagged; fusing all registered frames", seq.name)
         keep = use
+        flagged = np.zeros(n, bool)  # nothing was left out after all (nor is in the next iteration)
     volume = fuse_sequence(cfg.fusion, seq, depth, std, colors, poses, keep)
     volume.save_mesh(out_dir / "mesh.ply")
     free_space = getattr(volume, "last_free_space", None)  # what the free-space check removed from the saved mesh (None: off)
@@ -379,6 +381,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         flagged=[int(f) for f in report.flagged_frames] if cfg.failure.enabled else [],
         n_flagged=len(report.flagged_frames) if cfg.failure.enabled else 0,
         excluded=[int(i) for i in np.flatnonzero(flagged)],  # left out of this fusion and the next iteration
+        all_flagged_fused=all_flagged,  # every frame was flagged: all were fused, none left out
         checked=int(len(report.checked_frames)) if hasattr(report, "checked_frames") else None,
         pgo=pgo_summary,
         resfm=resfm_info,

@@ -89,6 +89,15 @@ def _check_same_input(out: Path, key: str, now: dict) -> None:
                          f"pass name=<a new name> for a new run dir, or delete {out} to start over")
 
 
+def _record_input(out: Path, key: str, now: dict) -> None:
+    """Add ``key`` to the run dir's input record when it is not there yet (a run dir from before the record
+    starts being checked now)."""
+    path = out / INPUT_RECORD
+    record = _read_json(path)
+    if key not in record:
+        atomic_write_text(path, json.dumps({**record, key: now}, indent=2) + "\n")
+
+
 def input_sequence(cfg: DictConfig, out: Path) -> Sequence:
     """The input as a :class:`Sequence` without poses (frames, pixel-centre K, mask), checked.
 
@@ -109,6 +118,8 @@ def input_sequence(cfg: DictConfig, out: Path) -> Sequence:
         raise InputError("input does not exist", src, "pass input=<video file or frames folder>")
     source_id = _source_id(src, cfg)
     _check_same_input(out, "source", source_id)  # before any decoding: frames/ may be another video's
+    # recorded before decoding and the checks below, so that a run stopped by them is still checked next time
+    _record_input(out, "source", source_id)
     K = mask = None
     k_path: Path | None = None
     if src.is_dir() and (src / "camera.json").is_file() and (src / "frames").is_dir():
@@ -166,8 +177,7 @@ def input_sequence(cfg: DictConfig, out: Path) -> Sequence:
 
         with atomic_path(out / "mask.png") as tmp:
             Image.fromarray(mask.astype(np.uint8) * 255).save(tmp)
-    if not (out / INPUT_RECORD).is_file():  # a run dir from before the record: it starts being checked now
-        atomic_write_text(out / INPUT_RECORD, json.dumps({"source": source_id, "camera": camera_id}, indent=2) + "\n")
+    _record_input(out, "camera", camera_id)
     return Sequence(name=src.stem if src.is_file() else src.name, frame_paths=frames, intrinsics=K, height=h,
                     width=w, mask=mask, source=source)
 
@@ -456,7 +466,8 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         from endorecon.evaluation.plots import render_mesh_preview
 
         render_mesh_preview(out / "mesh.ply", out / "mesh_preview.png", K=seq.intrinsics,
-                            cam_from_world=seq.cam_from_world, height=seq.height, width=seq.width)
+                            cam_from_world=seq.cam_from_world, height=seq.height, width=seq.width,
+                            units="SfM units" if seq.units == "sfm" else seq.units)
     except Exception as e:  # a missing preview must not hide the mesh itself
         preview_ok = False
         log.warning("mesh preview failed: %s", e)
@@ -478,7 +489,9 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         "",
         f"- frames: {len(seq)}, registered by SfM: {summary['registered']}, fused: {summary['fused']}",
         f"- flagged by failure detection: {summary['n_flagged']} {summary['flagged']}"
-        + (f"; left out of fusion with their neighbours: {summary['excluded']}" if summary.get("excluded") else ""),
+        + (f"; left out of fusion with their neighbours: {summary['excluded']}" if summary.get("excluded") else "")
+        + ("; **every frame was flagged, so all registered frames were fused** (check the failure thresholds "
+           "and `reconstruction/failures.csv`)" if summary.get("all_flagged_fused") else ""),
         f"- network input: {seq.width}x{seq.height} (window {seq.native_window} of the frames)",
         f"- checkpoint: `{ckpt}`",
         f"- test-time adaptation: {_adapt_line(adapt_info)}",

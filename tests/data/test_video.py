@@ -77,6 +77,26 @@ def test_extract_frames_is_resumable(clip, tmp_path, monkeypatch):
 
     monkeypatch.setattr(V, "_decoder", no_decoder)
     assert V.extract_frames(path, tmp_path / "frames") == first
+    # another selection, or another video in the same folder (a run stopped before recording its input):
+    # decoded again, not the first one's frames handed back
+    monkeypatch.undo()
+    assert len(V.extract_frames(path, tmp_path / "frames", stride=2)) == 6
+    other = write_video(tmp_path / "other.mp4", textured_frames(5, seed=3))
+    got = V.extract_frames(other, tmp_path / "frames")
+    assert len(got) == 5 and json.loads((tmp_path / "frames" / "decode.json").read_text())["video"] == str(other)
+
+
+def test_audio_longer_than_the_video_is_not_truncation(clip, tmp_path):
+    """The header's duration is the container's: a 1.2 s video with 3 s of audio is complete (it was refused
+    as truncated: 12 of the 30 frames the duration announced)."""
+    path, _ = clip
+    both = tmp_path / "with_audio.mp4"
+    subprocess.run([ffmpeg_mod.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-i", str(path), "-f", "lavfi", "-i",
+                    "sine=duration=3", "-c:v", "copy", "-c:a", "aac", str(both)],
+                   check=True)
+    out = V.extract_frames(both, tmp_path / "frames")
+    meta = json.loads((tmp_path / "frames" / "decode.json").read_text())
+    assert len(out) == 12 and not meta["truncated"] and meta["audio"] and meta["expected"] > 12
 
 
 def test_unreadable_video(tmp_path):
@@ -152,6 +172,17 @@ def test_read_intrinsics_bad(tmp_path, text):
     with pytest.raises(InputError) as e:
         V.read_intrinsics(f)
     assert e.value.path == f
+
+
+def test_read_intrinsics_of_the_original_method(tmp_path):
+    """camera_intrinsics_per_view holds fx, fy, cx, cy one a line (corner convention): it was refused."""
+    f = tmp_path / "camera_intrinsics_per_view"
+    f.write_text("677.171\n677.171\n872.127\n471.918\n")
+    K = V.read_intrinsics(f, "corner")
+    assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (677.171, 677.171, 871.627, 471.418)
+    f.write_text("677.171\n677.171\n872.127\n")
+    with pytest.raises(InputError):
+        V.read_intrinsics(f)
 
 
 def test_read_intrinsics_missing(tmp_path):

@@ -243,3 +243,16 @@ def test_config_composes(tmp_path):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("evaluate", overrides=["mesh=a.ply", "reference=b.ply", f"out={tmp_path}"])
     assert cfg.n_points == 40000 and cfg.registration.init == "auto" and cfg.out == str(tmp_path)
+
+
+def test_heat_map_views_show_the_whole_of_a_long_mesh():
+    """The views put the mesh's longest axis along the image's shorter side (the height): sized by the
+    horizontal field of view, a 10x2x1 box lost ~9 % of its length off the top and bottom edges."""
+    from endorecon.evaluation.plots import render_scalar_views
+
+    box = o3d.geometry.TriangleMesh.create_box(10.0, 2.0, 1.0)
+    images = render_scalar_views(box, np.zeros(len(box.vertices)), vmax=1.0, n_views=3, width=400, height=320)
+    for img in images:
+        drawn = (img < 0.99).any(axis=2)
+        assert drawn.any()
+        assert not drawn[0].any() and not drawn[-1].any() and not drawn[:, 0].any() and not drawn[:, -1].any()

@@ -229,6 +229,13 @@ def test_a_run_dir_is_not_resumed_with_another_input(tmp_path):
     assert (run_dir / "input.json").read_text() == record  # nothing was overwritten
     with pytest.raises(InputError, match="do not fit"):  # the same input again passes the check
         run(recon_cfg(run_dir, f"input={a}", f"intrinsics={K}", f"ckpt={bad}"))
+    # a first run stopped by the input checks (no intrinsics) still records its input: another input of the
+    # same name is refused next time (it was not, and a video's frames/ were the stopped run's)
+    fresh = tmp_path / "run2"
+    with pytest.raises(InputError, match="no intrinsics"):
+        run(recon_cfg(fresh, f"input={a}", f"ckpt={bad}"))
+    with pytest.raises(InputError, match="another video / frames folder"):
+        run(recon_cfg(fresh, f"input={b}", f"intrinsics={K}", f"ckpt={bad}"))
 
 
 def test_sequence_folder_whose_camera_is_for_another_size(tmp_path, tiny_ckpt):

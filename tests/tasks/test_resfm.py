@@ -381,6 +381,19 @@ def test_refine_sequence_leaves_out_the_flagged_frames_neighbours(tmp_path, monk
     assert summary["fused"] == N - len(left_out)
 
 
+def test_refine_sequence_with_every_frame_flagged_fuses_all_and_excludes_none(tmp_path, monkeypatch,
+                                                                               light_pipeline):
+    """Every checked frame flagged: fusion falls back to all registered frames, so the summary must not list
+    them all as left out (the report said both; the next iteration would have trained on no frame)."""
+    pipeline, flagged = light_pipeline
+    flagged["frames"] = list(range(0, N, 5))
+    cfg = make_cfg(enabled=False)
+    cfg.failure.exclude_radius = 4  # the checked frames 0, 5, ..., 25 and their neighbours cover all 30
+    summary = _refine(pipeline, cfg, make_seq(tmp_path, gt_poses()), tmp_path / "fold=0" / "iteration=0" / "sequences" / "s")
+    assert summary["fused"] == N and summary["excluded"] == [] and summary["all_flagged_fused"]
+    assert summary["n_flagged"] == len(flagged["frames"])
+
+
 # ------------------------------------------------------------------ real pycolmap
 @pytest.mark.slow
 def test_real_rerun_restores_corrupted_poses_on_a_phantom(tmp_path):
