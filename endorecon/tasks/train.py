@@ -238,6 +238,8 @@ def run_iteration(cfg: DictConfig, it: int, sfm_seqs: list[Sequence], info: pipe
     logger = False
     if cfg.get("logger") and "_target_" in cfg.logger:
         logger = instantiate(cfg.logger, save_dir=str(it_dir))
+    else:  # Lightning refuses a learning-rate monitor without a logger (logger=none crashed after SfM)
+        callbacks = [c for c in callbacks if not isinstance(c, L.pytorch.callbacks.LearningRateMonitor)]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger, default_root_dir=str(it_dir))
     ckpt = None
     last = it_dir / "checkpoints" / "last.ckpt"
@@ -252,9 +254,30 @@ def run_iteration(cfg: DictConfig, it: int, sfm_seqs: list[Sequence], info: pipe
         # Make that stage now, with the restored weights (sequences it finished are skipped by their summaries).
         log.info("iteration %d: training had finished in %s; making its fusion, failure detection and PGO", it, ckpt)
         boot.on_train_end(trainer, module)
+    if boot.metrics is None and not trainer.is_global_zero and trainer.fit_loop.done and not trainer.interrupted:
+        # distributed training: the end-of-iteration stage runs on rank 0 alone; the other ranks take its
+        # metrics.json (a barrier could time out: the stage takes minutes per sequence)
+        return wait_for_metrics(it_dir)
     if boot.metrics is None:  # training was interrupted before on_train_end
         raise InputError(f"iteration {it} did not finish", it_dir, "resume with ckpt_path=last")
     return boot.metrics
+
+
+def wait_for_metrics(it_dir: Path, timeout_s: float = 24 * 3600.0, poll_s: float = 5.0) -> dict:
+    """The iteration's ``metrics.json``, once rank 0's end-of-iteration stage has written it (another rank)."""
+    import time
+
+    path = it_dir / "metrics.json"
+    t0 = last_log = time.monotonic()
+    while not path.is_file():
+        if time.monotonic() - t0 > timeout_s:
+            raise InputError(f"rank 0 wrote no metrics.json in {timeout_s:.0f} s", it_dir,
+                             "see rank 0's log; resume with ckpt_path=last")
+        if time.monotonic() - last_log > 300:
+            log.info("waiting for rank 0's end-of-iteration stage (%s)", path)
+            last_log = time.monotonic()
+        time.sleep(poll_s)
+    return read_json(path, f"delete {it_dir} so that the iteration is made again")
 
 
 def load_weights(module, ckpt: Path) -> None:

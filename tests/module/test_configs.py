@@ -27,3 +27,11 @@ def test_model_configs_build_and_run(name):
         assert d.shape == (1, 1, *hw) and torch.isfinite(d).all() and (s > 0).all()
     opt = OmegaConf.to_container(model.optimizer)
     assert opt["_partial_"] is True and model.scheduler._partial_ is True
+
+
+def test_multirun_dirs_tell_apart_overrides_that_change_results():
+    """A sweep over experiment or trainer (resolution, network, epochs, precision) put every job in one run dir:
+    only keys that change no result may be left out of the job's subdir name."""
+    hydra = OmegaConf.load(CONF / "hydra" / "default.yaml")
+    excluded = set(hydra.job.config.override_dirname.exclude_keys)
+    assert excluded <= {"debug", "logger", "callbacks"}, excluded

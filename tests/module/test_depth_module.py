@@ -211,10 +211,29 @@ def test_non_finite_batch_is_skipped(tmp_path):
     bad = make_batch()
     bad["image_i"][0, :, 20, 20] = float("nan")
     rec = _ParamsChanged()
-    _trainer(tmp_path, 3, [rec]).fit(module, DataLoader([good, bad, good], batch_size=None))
+    trainer = _trainer(tmp_path, 3, [rec])
+    trainer.fit(module, DataLoader([good, bad, good], batch_size=None))
     assert rec.changed == [True, False, True]
     assert module.skipped_batches == 1
     assert all(torch.isfinite(p).all() for p in module.parameters())
+    # the logged count is the running count (its epoch value the max, not a mean over the epoch's steps)
+    assert float(trainer.callback_metrics["train/skipped_batches_epoch"]) == 1.0
+
+
+def test_logged_skip_count_includes_steps_dropped_for_their_gradients(tmp_path):
+    """A NaN gradient on the last batch drops the step in on_before_optimizer_step: it counts in the log too."""
+    torch.manual_seed(0)
+    module = DepthModule(_model_cfg(), {"warmup_epochs": 0})
+
+    class NanGradOnLast(L.Callback):
+        def on_after_backward(self, trainer, pl_module):
+            if trainer.global_step == 3:
+                next(pl_module.parameters()).grad[...] = float("nan")
+
+    trainer = _trainer(tmp_path, 4, [NanGradOnLast()])
+    trainer.fit(module, DataLoader([make_batch()] * 4, batch_size=None))
+    assert module.skipped_batches == 1
+    assert float(trainer.callback_metrics["train/skipped_batches_epoch"]) == 1.0
 
 
 def test_non_finite_gradients_drop_the_step():
@@ -411,3 +430,36 @@ def test_non_finite_batch_is_skipped_under_ddp(tmp_path):
     assert run.returncode == 0 and len(results) == 2, run.stdout[-2000:] + run.stderr[-3000:]
     assert [r[1] for r in results] == ["1", "1"]  # the step was skipped on both ranks
     assert results[0][2] == results[1][2]  # and the ranks' weights stayed the same
+
+
+def test_logged_warp_error_panel_uses_frame_j_mask(tmp_path, monkeypatch):
+    """A network exact inside both masks and wrong outside: the logged warped-pair error must be ~0, as the
+    depth consistency loss sees it (j's depth outside j's mask was warped in: an error rim up to 40 %)."""
+    from lightning.pytorch.loggers import TensorBoardLogger
+
+    import endorecon.module.depth_module as dmod
+
+    b = make_batch(B=1, scale=1.0)
+    K, T = b["K"][0], b["cam_j_from_cam_i"][0]
+    n, c = torch.tensor([0.2, 0.1, 1.0]), 5.0
+    d_i, _ = _plane_depth(K, n, c)
+    n_j = T[:3, :3] @ n
+    d_j, _ = _plane_depth(K, n_j, c + float(n_j @ T[:3, 3]))
+
+    class Exact(torch.nn.Module):
+        def forward(self, image, mask):
+            d = torch.stack([d_i, d_j])[:, None]
+            return torch.where(mask, d, torch.full_like(d, 3.0)), torch.full_like(d, 0.1)
+
+    module = DepthModule(_model_cfg(log_images_every_n_steps=1))
+    module.net = Exact()
+    got = {}
+
+    def spy(*args):
+        got["rel"], got["valid"] = args[5], args[6]
+        return torch.zeros(3, 4, 4)
+
+    monkeypatch.setattr(dmod, "pair_panel", spy)
+    module._trainer = L.Trainer(logger=TensorBoardLogger(str(tmp_path)), accelerator="cpu", enable_progress_bar=False)
+    module._log_images(b, module.compute_losses(b), "train")
+    assert got["valid"].sum() > 100 and got["rel"][got["valid"]].max() < 1e-3

@@ -129,6 +129,44 @@ def test_iteration_whose_end_stage_stopped_resumes_from_last(debug_root, tmp_pat
     assert (it0 / "metrics.json").is_file() and len(calls) == 2
 
 
+def test_iteration_without_a_logger(tmp_path, monkeypatch):
+    """logger=none: the default callbacks' learning-rate monitor made Lightning refuse to train (after SfM and
+    the data preparation); the iteration must run (tiny module and data, no sequences)."""
+    import importlib
+    import types
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    run_script = importlib.import_module("ddp_iterations_run")
+    import endorecon.data.datamodule as datamodule
+    import endorecon.module as module
+    import endorecon.tasks.train as train
+
+    monkeypatch.setattr(datamodule, "EndoDataModule", run_script.TinyData)
+    monkeypatch.setattr(module, "DepthModule", run_script.TinyModule)
+    monkeypatch.setattr(train, "prepare_sequences", lambda cfg, seqs, prev: [])
+    cfg = _compose("train", ["logger=none", "bootstrap.epochs_per_iteration=1", "callbacks.progress_bar=null",
+                             f"paths.root_dir={tmp_path}", f"paths.run_dir='{tmp_path}/run'"])
+    assert cfg.callbacks.lr_monitor is not None
+    metrics = train.run_iteration(cfg, 0, [], types.SimpleNamespace(root=tmp_path, patients_with_ct=[0]))
+    assert (tmp_path / "run" / "iteration=0" / "metrics.json").is_file() and metrics["iteration"] == "iteration=0"
+
+
+@pytest.mark.slow
+def test_iterations_under_ddp_finish_on_every_rank(tmp_path):
+    """trainer=ddp: the end-of-iteration stage runs on rank 0 alone; the other ranks must take its metrics, not
+    stop with "iteration 0 did not finish" (which then broke rank 0's next iteration)."""
+    import os
+
+    script = Path(__file__).with_name("ddp_iterations_run.py")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    run = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, timeout=600,
+                         env=env, cwd=tmp_path)
+    done = sorted(line for line in run.stdout.splitlines() if line.startswith("RANK"))
+    assert run.returncode == 0 and done == ["RANK 0 iteration 0 done", "RANK 0 iteration 1 done",
+                                            "RANK 1 iteration 0 done", "RANK 1 iteration 1 done"], \
+        run.stdout[-2000:] + run.stderr[-3000:]
+
+
 @pytest.mark.slow
 def test_last_checkpoint_is_the_network_the_iteration_evaluated(debug_run):
     """reconstruct.py, the next iteration's warm start and the results table load last.ckpt: it must hold
