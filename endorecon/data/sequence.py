@@ -354,6 +354,8 @@ def write_poses_txt(path: str | Path, names: list[str], cam_from_world: np.ndarr
         raise ValueError(f"{len(names)} names but {len(cam_from_world)} poses")
     lines = ["# frame cam_from_world (4x4 row-major; x_cam = R x_world + t)"]
     for n, T in zip(names, cam_from_world):
+        if not n.strip() or n != n.strip() or "\n" in n:  # read back as the first field(s) of its line
+            raise ValueError(f"frame name {n!r} cannot be written to poses.txt (empty, edge spaces or a newline)")
         lines.append(n + " " + " ".join(f"{v:.10g}" for v in T.reshape(-1)))
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
@@ -367,7 +369,8 @@ def read_poses_txt(path: str | Path) -> tuple[list[str], np.ndarray]:
     for ln, line in enumerate(path.read_text().splitlines(), 1):
         if not line.strip() or line.startswith("#"):
             continue
-        parts = line.split()
+        # the 16 numbers from the right: a frame's name may hold spaces (any frames folder is an input)
+        parts = line.strip().rsplit(None, 16)
         if len(parts) != 17:
             raise InputError(f"line {ln}: expected a name and 16 numbers, got {len(parts)} fields", path)
         try:

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from endorecon.utils.io import atomic_path
+
 
 def _colourise(depth: np.ndarray, vmax: float) -> np.ndarray:
     import matplotlib
@@ -41,7 +43,9 @@ def contact_sheet(root: str | Path, out: str | Path, patients=(0, 1, 2), frames_
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     # an adaptive 256-colour palette keeps the README image small (~1/3 of the RGB PNG)
-    Image.fromarray(sheet).quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(out, optimize=True)
+    with atomic_path(out) as tmp:
+        Image.fromarray(sheet).quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
+            tmp, optimize=True)
     return out
 
 
@@ -64,7 +68,8 @@ def side_by_side(phantom_frames, real_frame: str | Path, out: str | Path, real_m
     for t in tiles[1:]:
         row += [gap, t]
     out = Path(out)
-    Image.fromarray(np.concatenate(row, 1)).save(out)
+    with atomic_path(out) as tmp:
+        Image.fromarray(np.concatenate(row, 1)).save(tmp)
     return out
 
 

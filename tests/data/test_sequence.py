@@ -104,6 +104,11 @@ def test_poses_txt_roundtrip_with_unregistered(tmp_path):
     (tmp_path / "bad.txt").write_text("a.png 1 2 3\n")
     with pytest.raises(InputError, match="line 1"):
         read_poses_txt(tmp_path / "bad.txt")
+    # a frames folder's names may hold spaces: reconstruct.py writes them, evaluate.py reads them back
+    write_poses_txt(tmp_path / "spaces.txt", ["frame 000.png", "frame  001.png"], T)
+    assert read_poses_txt(tmp_path / "spaces.txt")[0] == ["frame 000.png", "frame  001.png"]
+    with pytest.raises(ValueError, match="cannot be written"):
+        write_poses_txt(tmp_path / "x.txt", [" lead.png", "b.png"], T)
 
 
 def _project(seq, X):
