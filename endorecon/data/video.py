@@ -115,6 +115,10 @@ def extract_frames(video: str | Path, out_dir: str | Path, stride: int = 1, max_
                         expected)
         what = f"decoded {decoded} frame(s)" + (f" of the {expected} its header announces" if expected else "") \
             + (f"; decoder error: {error}" if error else "")
+        if kept < 3 and (stopped_early or decoded >= 3):  # the file had frames: the selection left too few
+            raise InputError(f"the frame selection keeps {kept} of the video's frames (start={start}, stride="
+                             f"{stride}, max_frames={max_frames}; {what}); SfM needs at least 3", video,
+                             "lower video.start / video.stride, or raise video.max_frames (>= 3)")
         if kept < 3:
             raise InputError(f"video gave only {kept} usable frame(s), SfM needs at least 3 ({what})", video, fix)
         if truncated and not allow_truncated:

@@ -56,7 +56,8 @@ def write_mesh_ply(path: str | Path, mesh: o3d.t.geometry.TriangleMesh, boundary
     face["n"] = 3
     face["i"] = tri
     ptype = {"<f4": "float", "u1": "uchar"}
-    header = ["ply", "format binary_little_endian 1.0", "comment endorecon fused mesh; std = per-vertex depth std"]
+    header = ["ply", "format binary_little_endian 1.0",
+              "comment endorecon fused mesh" + ("; std = per-vertex depth std" if "std" in cols else "")]
     if boundary_trim_rings is not None:
         header.append(f"{TRIM_COMMENT}{int(boundary_trim_rings)}")
     header.append(f"element vertex {n}")

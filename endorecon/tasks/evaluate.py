@@ -57,6 +57,10 @@ def load_trajectories(poses_path: str | Path, gt_poses_path: str | Path) -> tupl
 
 def run(cfg: DictConfig) -> Path:
     """Evaluate ``cfg.mesh`` against ``cfg.reference``; returns the output directory."""
+    for key, what in (("mesh", "the reconstructed mesh (.ply)"), ("reference", "the reference (CT) surface in mm")):
+        if OmegaConf.is_missing(cfg, key) or cfg.get(key) in (None, ""):
+            raise InputError(f"{key}= is required: {what}", fix="python evaluate.py mesh=<ply> reference=<ply> "
+                             "[trajectory=<poses.txt> gt_trajectory=<poses.txt>]")
     out = Path(str(cfg.out))
     traj = cfg.get("trajectory")
     gt_traj = cfg.get("gt_trajectory")

@@ -258,10 +258,13 @@ def _training_hw(raw: dict, ckpt: Path) -> tuple[int, int] | None:
 
 
 def latest_checkpoint(cfg) -> Path:
-    cands = sorted(Path(cfg.paths.output_root).glob("train/fold=*/iteration=*/checkpoints/last.ckpt"),
-                   key=lambda p: p.stat().st_mtime)
+    """The newest ``last.ckpt`` of a finished iteration under ``<output_root>/train`` (single runs and
+    multiruns alike)."""
+    train = Path(cfg.paths.output_root) / "train"
+    cands = sorted((p for p in train.glob("**/iteration=*/checkpoints/last.ckpt")
+                    if (p.parents[1] / "metrics.json").is_file()), key=lambda p: p.stat().st_mtime)
     if not cands:
-        raise InputError("no checkpoint given and none found under outputs/train",
+        raise InputError(f"no checkpoint given and no finished iteration's last.ckpt under {train}",
                          fix="train first (python train.py) or " + CKPT_FIX)
     return cands[-1]
 
@@ -495,11 +498,11 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         f"- network input: {seq.width}x{seq.height} (window {seq.native_window} of the frames)",
         f"- checkpoint: `{ckpt}`",
         f"- test-time adaptation: {_adapt_line(adapt_info)}",
-        f"- mesh: `mesh.ply` ({mesh_info}; coloured, per-vertex std), refined poses: `reconstruction/poses.txt`, "
+        f"- mesh: `mesh.ply` ({mesh_info}; coloured{', per-vertex std' if _mesh_has_std(out / 'mesh.ply') else ', no std (plain TSDF fusion)'}), refined poses: `reconstruction/poses.txt`, "
         f"failure metrics: `reconstruction/failures.csv`",
         f"- dense PGO: {_pgo_line(summary.get('pgo'))}",
         f"- free-space check: {_free_space_line(summary.get('free_space'))}",
-        f"- uncertainty trim: {_uncertain_line(summary.get('uncertain'))}",
+        f"- uncertainty trim: {_uncertain_line(summary.get('uncertain'), (cfg.get('fusion') or {}).get('name') if cfg is not None else None)}",
         "",
         "| stage | time (s) | |",
         "| --- | ---: | --- |",
@@ -525,8 +528,10 @@ def _free_space_line(fs) -> str:
             f"{fs['frames']} fused frames see through")
 
 
-def _uncertain_line(u) -> str:
+def _uncertain_line(u, fusion_name: str | None = None) -> str:
     if not isinstance(u, dict):
+        if fusion_name == "plain":
+            return "none (plain TSDF fusion carries no std)"
         return "off (fusion.max_std_ratio=null): all fused surface kept, its std in the mesh"
     share = u["removed"] / u["triangles"] if u.get("triangles") else 0.0
     ratio = u.get("ratio", float("nan"))
@@ -554,6 +559,15 @@ def _adapt_line(info: dict | None) -> str:
     return (f"{info.get('steps', 0)} steps in {info.get('seconds', 0.0):.0f} s, the video's self-supervised loss "
             f"{info.get('loss_before', float('nan')):.4g} -> {info.get('loss_after', float('nan')):.4g}, {verdict} "
             f"(`adaptation/adapt.json`)")
+
+
+def _mesh_has_std(path: Path) -> bool:
+    from endorecon.fusion.ply import ply_header_lines
+
+    try:
+        return any(ln.split()[-1] == "std" for ln in ply_header_lines(path) if ln.startswith("property"))
+    except (OSError, ValueError, IndexError):
+        return False
 
 
 def _mesh_info(path: Path) -> str:

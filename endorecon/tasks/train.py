@@ -184,9 +184,9 @@ def run(cfg: DictConfig) -> float | None:
             raise InputError(f"bootstrap.targets.{k}={v!r}: the targets are {', '.join(known)}, each a number or null",
                              fix="pass e.g. bootstrap.targets.max_mm=1.5 (or bootstrap.targets.max_mm=null to leave it unchecked)")
     L.seed_everything(int(cfg.seed), workers=True)
+    check_same_settings(cfg)  # before the data: a refusal should not wait for the phantom and SfM
     info = pipeline.load_sequences(cfg)
     pipeline.check_fold(int(cfg.fold), info.patients_with_ct)
-    check_same_settings(cfg)
     todo = [it for it in range(int(cfg.iteration) + 1) if not is_complete(iteration_dir(cfg, it))]
     if not todo:
         log.info("all iterations up to %d of fold %d are complete", cfg.iteration, cfg.fold)
@@ -194,12 +194,13 @@ def run(cfg: DictConfig) -> float | None:
         raise InputError(
             f"iteration {cfg.iteration} needs iteration {todo[0]}, which is missing",
             iteration_dir(cfg, todo[0]),
-            f"run: python train.py fold={cfg.fold} iteration={todo[0]}  (or bootstrap.run_missing=true)",
+            f"run: {_command_for_iteration(cfg, todo[0])}  (or bootstrap.run_missing=true)",
         )
     sfm_seqs = pipeline.run_sfm(cfg, info.sequences, info.root)
     metrics = None
     for it in todo:
-        metrics = run_iteration(cfg, it, sfm_seqs, info)
+        # a checkpoint path resumes the first missing iteration only: the later ones train from their start
+        metrics = run_iteration(cfg, it, sfm_seqs, info, resume=it == todo[0])
     if metrics is None:
         it_dir = iteration_dir(cfg, int(cfg.iteration))
         metrics = read_json(it_dir / "metrics.json", f"delete {it_dir} so that the iteration is made again")
@@ -208,7 +209,21 @@ def run(cfg: DictConfig) -> float | None:
     return ev.get("mean_mm")
 
 
-def run_iteration(cfg: DictConfig, it: int, sfm_seqs: list[Sequence], info: pipeline.DatasetInfo) -> dict:
+def _command_for_iteration(cfg: DictConfig, it: int) -> str:
+    """This command line with ``iteration=<it>`` (and without ``bootstrap.run_missing``): the user's other
+    overrides kept, so that it trains the same configuration in the same place."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        given = list(HydraConfig.get().overrides.task)
+    except Exception:  # noqa: BLE001 - not under Hydra's main (tests, the API): the fold at least
+        given = [f"fold={cfg.fold}"]
+    keep = [o for o in given if not o.lstrip("+~").startswith(("iteration=", "bootstrap.run_missing="))]
+    return " ".join(["python train.py", *keep, f"iteration={it}"])
+
+
+def run_iteration(cfg: DictConfig, it: int, sfm_seqs: list[Sequence], info: pipeline.DatasetInfo,
+                  resume: bool = True) -> dict:
     from endorecon.callbacks import BootstrapCallback, LastCheckpoint
     from endorecon.data.datamodule import EndoDataModule
     from endorecon.module import DepthModule
@@ -241,12 +256,7 @@ def run_iteration(cfg: DictConfig, it: int, sfm_seqs: list[Sequence], info: pipe
     else:  # Lightning refuses a learning-rate monitor without a logger (logger=none crashed after SfM)
         callbacks = [c for c in callbacks if not isinstance(c, L.pytorch.callbacks.LearningRateMonitor)]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger, default_root_dir=str(it_dir))
-    ckpt = None
-    last = it_dir / "checkpoints" / "last.ckpt"
-    if cfg.ckpt_path == "last" and last.is_file():
-        ckpt = str(last)
-    elif cfg.ckpt_path not in (None, "last"):
-        ckpt = str(cfg.ckpt_path)
+    ckpt = resume_checkpoint(cfg, it_dir, resume)
     trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
     if boot.metrics is None and ckpt is not None and trainer.fit_loop.done and not trainer.interrupted:
         # last.ckpt was saved after the final epoch and the end-of-iteration stage (fusion, failure detection,
@@ -261,6 +271,18 @@ def run_iteration(cfg: DictConfig, it: int, sfm_seqs: list[Sequence], info: pipe
     if boot.metrics is None:  # training was interrupted before on_train_end
         raise InputError(f"iteration {it} did not finish", it_dir, "resume with ckpt_path=last")
     return boot.metrics
+
+
+def resume_checkpoint(cfg: DictConfig, it_dir: Path, resume: bool) -> str | None:
+    """The checkpoint an iteration's training resumes from: ``ckpt_path=last`` -> its own ``last.ckpt`` when
+    there is one; an explicit path -> only for the first missing iteration (``resume``; every later iteration
+    given it too was marked complete with the earlier weights, untrained)."""
+    last = it_dir / "checkpoints" / "last.ckpt"
+    if cfg.ckpt_path == "last":
+        return str(last) if last.is_file() else None
+    if cfg.ckpt_path is not None and resume:
+        return str(cfg.ckpt_path)
+    return None
 
 
 def wait_for_metrics(it_dir: Path, timeout_s: float = 24 * 3600.0, poll_s: float = 5.0) -> dict:

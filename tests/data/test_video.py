@@ -150,8 +150,18 @@ def test_truncated_without_index_is_unreadable(tmp_path):
 
 def test_too_short_video(tmp_path):
     path = write_video(tmp_path / "two.mp4", textured_frames(2))
-    with pytest.raises(InputError, match="at least 3"):
+    with pytest.raises(InputError, match="at least 3") as e:
         V.extract_frames(path, tmp_path / "frames")
+    assert "re-encode" in e.value.fix
+
+
+@pytest.mark.parametrize("selection", [dict(max_frames=2), dict(start=10), dict(stride=6)])
+def test_frame_selection_leaving_too_few_frames_names_the_selection(clip, tmp_path, selection):
+    """A 12-frame clip cut to < 3 frames by video.start / stride / max_frames: the fix was to re-encode the file."""
+    path, _ = clip
+    with pytest.raises(InputError, match="frame selection keeps") as e:
+        V.extract_frames(path, tmp_path / "frames", **selection)
+    assert "video.start" in e.value.fix and not (tmp_path / "frames").exists()
 
 
 # ------------------------------------------------------------------ intrinsics

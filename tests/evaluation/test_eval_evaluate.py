@@ -229,6 +229,10 @@ def test_bad_registration_init_is_named_before_any_work(ct_path, tmp_path, monke
     import endorecon.tasks.evaluate as task
 
     monkeypatch.setattr(task, "evaluate_mesh", lambda *a, **k: pytest.fail("evaluated with a bad init"))
+    for missing in ("mesh", "reference"):  # a traceback (MissingMandatoryValue) before
+        cfg = _cfg(**{k: str(ct_path) for k in ("mesh", "reference") if k != missing}, out=str(tmp_path / "o"))
+        with pytest.raises(InputError, match=f"{missing}= is required"):
+            run(cfg)
     for init, match in (("globl", "registration.init='globl' is not one of"),
                         ("trajectory", "registration.init=trajectory needs")):
         cfg = _cfg(mesh=str(ct_path), reference=str(ct_path), out=str(tmp_path / "o"), registration={"init": init})

@@ -34,4 +34,5 @@ def test_multirun_dirs_tell_apart_overrides_that_change_results():
     only keys that change no result may be left out of the job's subdir name."""
     hydra = OmegaConf.load(CONF / "hydra" / "default.yaml")
     excluded = set(hydra.job.config.override_dirname.exclude_keys)
-    assert excluded <= {"debug", "logger", "callbacks"}, excluded
+    assert excluded <= {"debug", "logger", "callbacks", "paths.output_root", "paths.root_dir", "ckpt_path"}, excluded
+    assert "paths.output_root" in excluded  # the sweep dir already lies under it (it was nested into the name)

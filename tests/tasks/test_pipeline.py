@@ -335,3 +335,30 @@ def test_empty_fused_mesh_names_the_fusion_setting(tiny):
     with pytest.raises(pipeline.InputError, match="mesh_weight_threshold") as e:
         pipeline.render_simulated(o3d.t.geometry.TriangleMesh(), seq, gt.cam_from_world)
     assert seq.name in str(e.value)
+
+
+def test_file_lock_makes_jobs_take_turns(tmp_path):
+    """Folds run in parallel share the phantom and the SfM cache (COLMAP aborted on the shared database): a
+    second job waits for the first's lock."""
+    import subprocess
+    import sys
+    import time
+
+    from endorecon.utils.io import file_lock
+
+    lock, log = tmp_path / ".seq.lock", tmp_path / "log.txt"
+    code = ("import sys, time; sys.path.insert(0, sys.argv[3]); from endorecon.utils.io import file_lock\n"
+            "from pathlib import Path\n"
+            "with file_lock(sys.argv[1]):\n"
+            "    Path(sys.argv[2]).write_text('held\\n'); time.sleep(1.5)\n"
+            "    Path(sys.argv[2]).write_text('held\\nreleased\\n')\n")
+    from pathlib import Path
+
+    other = subprocess.Popen([sys.executable, "-c", code, str(lock), str(log), str(Path(__file__).parents[2])])
+    t0 = time.monotonic()
+    while not log.exists() and time.monotonic() - t0 < 30:
+        time.sleep(0.02)
+    with file_lock(lock):
+        seen = log.read_text()
+    other.wait(timeout=30)
+    assert seen == "held\nreleased\n"

@@ -418,3 +418,51 @@ def test_depth_stamp_follows_the_sfm_model(tmp_path):
                    np.tile(np.eye(4), (3, 1, 1)), pts, [np.arange(3)] * 10)
     assert _stamp(ckpt, seq) == _stamp(ckpt, seq.replace())
     assert _stamp(ckpt, seq) != _stamp(ckpt, seq.replace(points_xyz=pts * 1.01))
+
+
+def test_run_dir_name_of_relative_inputs(tmp_path, monkeypatch):
+    """input=. or input=.. named the run dir '' or '..': the outputs landed in the output root itself."""
+    from endorecon.utils.resolvers import _stem
+
+    seq = tmp_path / "patient_07" / "frames"
+    seq.mkdir(parents=True)
+    monkeypatch.chdir(seq)
+    assert _stem(".") == "frames" and _stem("..") == "patient_07" and _stem("../") == "patient_07"
+    assert _stem("clip.mp4") == "clip" and _stem("/a/b/seq_00") == "seq_00" and _stem(None) == "unnamed"
+
+
+def test_latest_checkpoint_finds_multiruns_and_skips_unfinished(tmp_path):
+    import os
+
+    from omegaconf import OmegaConf
+
+    from endorecon.tasks.reconstruct import latest_checkpoint
+
+    cfg = OmegaConf.create({"paths": {"output_root": str(tmp_path)}})
+    with pytest.raises(InputError, match=str(tmp_path / "train")):
+        latest_checkpoint(cfg)
+    single = tmp_path / "train" / "fold=0" / "iteration=1"
+    multi = tmp_path / "train" / "multirun" / "2026-12-06_10-00-00" / "fold=1" / "iteration=0"
+    unfinished = tmp_path / "train" / "fold=2" / "iteration=0"
+    for i, d in enumerate((single, multi, unfinished)):
+        (d / "checkpoints").mkdir(parents=True)
+        (d / "checkpoints" / "last.ckpt").write_bytes(b"x")
+        os.utime(d / "checkpoints" / "last.ckpt", (1000 + i, 1000 + i))
+        if d is not unfinished:
+            (d / "metrics.json").write_text("{}")
+    assert latest_checkpoint(cfg) == multi / "checkpoints" / "last.ckpt"  # the newest finished one
+
+
+def test_report_lines_of_a_plain_fusion_mesh(tmp_path):
+    """fusion=plain writes no std: the report said "per-vertex std" and "its std in the mesh"."""
+    import open3d as o3d
+
+    from endorecon.fusion.ply import write_mesh_ply
+    from endorecon.tasks.reconstruct import _mesh_has_std, _uncertain_line
+
+    box = o3d.t.geometry.TriangleMesh.from_legacy(o3d.geometry.TriangleMesh.create_box())
+    write_mesh_ply(tmp_path / "plain.ply", box)
+    box.vertex["std"] = o3d.core.Tensor(np.ones((len(box.vertex.positions), 1), np.float32))
+    write_mesh_ply(tmp_path / "adaptive.ply", box)
+    assert not _mesh_has_std(tmp_path / "plain.ply") and _mesh_has_std(tmp_path / "adaptive.ply")
+    assert "no std" in _uncertain_line(None, "plain") and "its std in the mesh" in _uncertain_line(None, "adaptive")

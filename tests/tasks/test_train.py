@@ -458,6 +458,35 @@ def test_iterations_made_with_other_settings_are_refused(tmp_path):
         check_same_settings(cfg)
 
 
+def test_explicit_checkpoint_resumes_the_first_missing_iteration_only(tmp_path):
+    from endorecon.tasks.train import resume_checkpoint
+
+    it1, it2 = tmp_path / "iteration=1", tmp_path / "iteration=2"
+    given = train_cfg(tmp_path, "ckpt_path=/x/last.ckpt")
+    assert resume_checkpoint(given, it1, resume=True) == "/x/last.ckpt"
+    assert resume_checkpoint(given, it2, resume=False) is None  # trained from its start, not skipped
+    last = train_cfg(tmp_path, "ckpt_path=last")
+    assert resume_checkpoint(last, it1, resume=False) is None
+    (it1 / "checkpoints").mkdir(parents=True)
+    (it1 / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    assert resume_checkpoint(last, it1, resume=False) == str(it1 / "checkpoints" / "last.ckpt")
+    assert resume_checkpoint(train_cfg(tmp_path), it1, resume=True) is None
+
+
+def test_missing_iteration_command_keeps_the_users_overrides(monkeypatch):
+    import types
+
+    from hydra.core.hydra_config import HydraConfig
+
+    from endorecon.tasks.train import _command_for_iteration
+
+    task = ["debug=fast", "iteration=2", "bootstrap.run_missing=false", "paths.output_root=/tmp/o", "fold=1"]
+    monkeypatch.setattr(HydraConfig, "get", staticmethod(
+        lambda: types.SimpleNamespace(overrides=types.SimpleNamespace(task=task))))
+    assert _command_for_iteration(OmegaConf.create({"fold": 1}), 1) == \
+        "python train.py debug=fast paths.output_root=/tmp/o fold=1 iteration=1"
+
+
 @pytest.mark.parametrize("damage", ["truncated", "missing", "not_an_object"])
 def test_damaged_summary_of_previous_iteration_names_the_file(tmp_path, damage):
     """A previous iteration's summary.json that is cut short, gone or not a JSON object stops the next
@@ -497,3 +526,10 @@ def test_read_json(tmp_path):
     assert str(p) in str(e.value) and "fix: delete it" in str(e.value)
     with pytest.raises(InputError, match="missing"):
         read_json(tmp_path / "b.json", "make it")
+
+
+def test_debug_runs_have_their_own_outputs():
+    """A debug run in outputs/train/fold=0 made the default run there refuse its settings (after ~2 min)."""
+    default, debug = _compose("train", []), _compose("train", ["debug=fast"])
+    assert debug.paths.output_root != default.paths.output_root
+    assert _compose("train", ["debug=fast", "paths.output_root=/tmp/o"]).paths.output_root == "/tmp/o"
