@@ -208,5 +208,9 @@ def test_bad_input(tmp_path, scene):
     bad_vis = [np.array([0, 7])] + list(vis[1:])
     with pytest.raises(InputError, match="frame 7"):
         build_sparse_cache(make_seq(T, X, bad_vis))
-    with pytest.raises(IndexError):
-        build_sparse_cache(make_seq(T, X, vis)).depth_map(9)
+    cache = build_sparse_cache(make_seq(T, X, vis))
+    for bad in (9, -1, len(T)):  # -1 gave an empty map without the range check
+        with pytest.raises(IndexError, match=f"frame {bad} out of range"):
+            cache.depth_map(bad)
+        with pytest.raises(IndexError, match=f"frame {bad} out of range"):
+            cache.frame_points(bad)

@@ -180,6 +180,11 @@ def test_stage_writes_poses_and_skips(tmp_path, scene):
     got_names, poses = read_poses_txt(path)
     assert got_names == names and poses.shape == (N, 4, 4)
     np.testing.assert_allclose(poses[0], scene.cam_from_world[0].numpy())
+    # the file holds the optimised poses (the stage wrote its input back before and still passed)
+    direct = optimize_poses(depth, 0.05 * depth, scene.K.to(F), scene.cam_from_world, scene.mask,
+                            scene.sparse_flow_fn, cfg).cam_from_world.numpy()
+    np.testing.assert_allclose(poses, direct, rtol=0, atol=1e-8)
+    assert np.abs(poses[1:] - scene.cam_from_world[1:].numpy()).max() > 1e-7
     mtime = path.stat().st_mtime_ns
     assert run(cfg, names, None, None, None, None, None, None, tmp_path) == path
     assert path.stat().st_mtime_ns == mtime

@@ -141,7 +141,7 @@ def test_bad_inputs():
         MeshRenderer("/nonexistent/mesh.ply")
     with pytest.raises(InputError):
         MeshRenderer((np.zeros((3, 3)), np.array([[0, 1, 5]])))
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"cam_from_world must be \(N, 4, 4\)"):
         render_depth(plane_mesh(1.0), K, np.eye(4), H, W)  # needs (N, 4, 4)
 
 
