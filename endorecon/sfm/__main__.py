@@ -120,7 +120,10 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 0
     except EndoreconError as e:
-        console.print(f"[red]error:[/red] {e}")
+        from rich.text import Text
+
+        # Text, not markup (paths may hold brackets); not wrapped (a path or a key cut in two reads wrong)
+        console.print(Text("error: ", style="red") + Text(str(e)), soft_wrap=True, highlight=False)
         return 2
 
 

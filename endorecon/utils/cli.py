@@ -42,7 +42,9 @@ def report_errors(fn, *args, **kwargs):
             from rich.text import Text
 
             # Text, not markup: messages hold paths and overrides with brackets.
-            Console(stderr=True).print(Text("error: ", style="bold red") + Text(str(e)), highlight=False)
+            # not wrapped at the terminal's width: a path or an override cut in two cannot be copied
+            Console(stderr=True).print(Text("error: ", style="bold red") + Text(str(e)), highlight=False,
+                                       soft_wrap=True)
         except Exception:  # rich missing or broken terminal: plain text still says it
             print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
