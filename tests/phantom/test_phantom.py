@@ -48,9 +48,9 @@ def test_layout_and_importers_read_back(ds):
     assert gt.cam_from_world.shape == (3, 4, 4) and gt.mesh_path.is_file()
     assert (gt.depth_mm[:, ~mask] == 0).all() and (gt.depth_mm[:, mask] > 0).mean() > 0.99
     assert load_ground_truth(ds, 4).mesh_path is None  # train-only patient: no CT for evaluation
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="no patient 7"):
         load_ground_truth(ds, 7)
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match=r"patient 0 has no sequence 'seq_05'"):
         load_ground_truth(ds, 0, "seq_05")
 
 

@@ -418,6 +418,14 @@ def test_depth_stamp_follows_the_sfm_model(tmp_path):
                    np.tile(np.eye(4), (3, 1, 1)), pts, [np.arange(3)] * 10)
     assert _stamp(ckpt, seq) == _stamp(ckpt, seq.replace())
     assert _stamp(ckpt, seq) != _stamp(ckpt, seq.replace(points_xyz=pts * 1.01))
+    # and everything else the depth maps depend on: the frames' size, the crop window, the frame count, the network
+    before = _stamp(ckpt, seq)
+    assert before != _stamp(ckpt, seq.replace(height=32, width=40, intrinsics=K / 2, mask=np.ones((32, 40), bool)))
+    assert before != _stamp(ckpt, seq.replace(native_window=(0, 0, 80, 64)))
+    assert before != _stamp(ckpt, seq.replace(frame_paths=seq.frame_paths[:2], cam_from_world=np.tile(np.eye(4), (2, 1, 1)),
+                                              visibility=[np.arange(2)] * 10))
+    ckpt.write_bytes(b"w2")
+    assert before != _stamp(ckpt, seq)
 
 
 def test_run_dir_name_of_relative_inputs(tmp_path, monkeypatch):
@@ -451,6 +459,8 @@ def test_latest_checkpoint_finds_multiruns_and_skips_unfinished(tmp_path):
         if d is not unfinished:
             (d / "metrics.json").write_text("{}")
     assert latest_checkpoint(cfg) == multi / "checkpoints" / "last.ckpt"  # the newest finished one
+    os.utime(single / "checkpoints" / "last.ckpt", (2000, 2000))  # by time, not by path
+    assert latest_checkpoint(cfg) == single / "checkpoints" / "last.ckpt"
 
 
 def test_report_lines_of_a_plain_fusion_mesh(tmp_path):
