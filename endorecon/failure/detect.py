@@ -200,6 +200,8 @@ class FailureReport:
             metrics = {m: np.array([float(r[m]) for r in rows]) for m in METRICS}
             flagged = np.array([bool(int(r["flagged"])) for r in rows], dtype=bool)
             reasons = [r["reason"] for r in rows]
+            if any(v is None for r in rows for v in r.values()):  # a short row: DictReader fills in None
+                raise ValueError("a row has fewer columns than the header")
         except (KeyError, ValueError, TypeError) as e:
             raise InputError(f"not a failure report ({e})", path, "delete it and rerun failure detection") from e
         exceeded = {m: np.array([m in r.split("+") for r in reasons], dtype=bool) for m in METRICS}

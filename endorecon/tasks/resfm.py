@@ -215,6 +215,12 @@ def rerun_repeated_failures(cfg: DictConfig, seq: Sequence, report, previous_rep
     if radius is None:  # the frames the loop excludes from fusion around a flagged frame
         radius = cfg.get("failure", {}).get("exclude_radius") if cfg is not None else None
     radius = report.interval // 2 if radius is None else int(radius)
+    if radius < 0:  # checked before any SfM runs (it crashed after one)
+        raise InputError(f"failure.rerun.replace_radius / failure.exclude_radius must be >= 0, got {radius}",
+                         fix="use 0 <= radius < failure.rerun.pad (defaults: radius 2, pad 5)")
+    if 2 * (pad - radius) < min_anchor:  # visible, not fatal: each range is then recorded as not aligned
+        log.warning("failure.rerun: radius %d with pad %d leaves an inner range %d anchor frame(s) (< %d): its "
+                    "SfM rerun cannot be aligned", radius, pad, max(0, 2 * (pad - radius)), min_anchor)
     bad = np.zeros(n, bool)
     bad[[f for f in report.excluded_frames(radius) if f < n]] = True
     bad[[f for f in report.flagged_frames if f < n]] = True

@@ -189,6 +189,10 @@ def test_csv_roundtrip_and_stage(tmp_path, scene):
     (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
     with pytest.raises(InputError, match="not a failure report"):
         FailureReport.read_csv(tmp_path / "bad.csv")
+    (tmp_path / "short.csv").write_text("frame,dense_simulation,sparse_flow,depth_consistency,flagged,reason\n"
+                                        "0,1,2,3,0,\n5,1,2,3,1\n")  # a row without its reason: AttributeError
+    with pytest.raises(InputError, match="not a failure report"):
+        FailureReport.read_csv(tmp_path / "short.csv")
     # Stage: writes failures.csv, then skips the complete output.
     sim = scene.render(scene.cam_from_world)
     out = run({}, scene.depth, 0.05 * scene.depth, sim, sim > 0, scene.K, scene.cam_from_world, scene.mask,

@@ -394,6 +394,25 @@ def test_refine_sequence_with_every_frame_flagged_fuses_all_and_excludes_none(tm
     assert summary["n_flagged"] == len(flagged["frames"])
 
 
+def test_a_negative_radius_is_refused_before_sfm(tmp_path, fake_rerun, light_pipeline):
+    """A negative replace radius crashed after the SfM rerun (IndexError); it is refused before it."""
+    from endorecon.utils.errors import InputError
+
+    radius = -1
+
+    fake_rerun.gt = gt_poses()
+    seq = make_seq(tmp_path, fake_rerun.gt)
+    run = tmp_path / "fold=0"
+    _, flagged = light_pipeline
+    prev = run / "iteration=0" / "sequences" / "s"
+    prev.mkdir(parents=True)
+    make_report([15]).to_csv(prev / "failures.csv")
+    out = run / "iteration=1" / "sequences" / "s"
+    with pytest.raises(InputError, match="must be >= 0"):
+        resfm.run(make_cfg(replace_radius=radius), seq, make_report([15]), fake_rerun.gt.copy(), out)
+    assert fake_rerun.calls == []
+
+
 # ------------------------------------------------------------------ real pycolmap
 @pytest.mark.slow
 def test_real_rerun_restores_corrupted_poses_on_a_phantom(tmp_path):
