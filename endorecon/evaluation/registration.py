@@ -333,6 +333,9 @@ def _gauss_newton_step(x, q, n, point_weight, damping):
     return float(d[0]), d[1:4].copy(), d[4:7].copy(), scale_ref
 
 
+INITS = ("auto", "trajectory", "global", "identity")  # register()'s initialisations
+
+
 def register(
     src_points: np.ndarray,
     surface: ReferenceSurface,
@@ -377,7 +380,7 @@ def register(
     if init == "identity":
         return icp_sim3(src_points, surface, Sim3.identity(), **icp_kwargs)
     if init != "global":
-        raise ValueError(f"unknown init '{init}' (auto, trajectory, global, identity)")
+        raise ValueError(f"unknown init '{init}' ({', '.join(INITS)})")
     if ref_points is None:
         raise ValueError("init='global' needs ref_points")
     fpfh_src = src_points if global_src_points is None else global_src_points

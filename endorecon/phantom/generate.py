@@ -35,7 +35,7 @@ from endorecon.phantom.trajectory import (
 )
 from endorecon.rendering import MeshRenderer
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_dir
+from endorecon.utils.io import atomic_dir, file_lock
 
 log = logging.getLogger(__name__)
 
@@ -383,6 +383,12 @@ def ensure_dataset(cfg: Any, root: str | Path | None = None) -> Path:
     if unknown:  # a misspelt setting would otherwise be ignored and the default phantom reused
         raise InputError(f"unknown phantom setting(s) {unknown}; known: {sorted(d)}",
                          fix="fix the key under data.phantom")
+    # jobs sharing the data (folds run in parallel): one generates it, the others then find it complete
+    with file_lock(root.parent / f".{root.name}.lock"):
+        return _ensure_locked(root, kw, d)
+
+
+def _ensure_locked(root: Path, kw: dict, d: dict) -> Path:
     if (root / "COMPLETE").is_file():
         meta = _read_meta(root)
         if meta is None or meta.get("format") != FORMAT:

@@ -45,7 +45,7 @@ from endorecon.data.transforms import resize_sequence
 from endorecon.sfm import colmap
 from endorecon.sfm.clean import clean_sparse, normalize_scale
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_path, atomic_write_text
+from endorecon.utils.io import atomic_path, atomic_write_text, file_lock
 
 log = logging.getLogger(__name__)
 
@@ -313,20 +313,26 @@ def run(cfg_sfm, seq: Sequence, out_dir: str | Path) -> Path:
     out_dir = Path(out_dir)
     cfg = _cfg(cfg_sfm)
     settings = _settings(cfg, seq)
-    _forget_other_settings(out_dir, settings)
-    if (out_dir / "sequence.npz").is_file() and (out_dir / "attempts.json").is_file():
-        log.info("SfM: %s is complete, skipping", out_dir)
-        return out_dir
-    out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out_dir / "settings.json", json.dumps(settings, indent=2, sort_keys=True) + "\n")
-    _solve(cfg, _bare(seq), out_dir, list(range(len(cfg["attempts"]))), bool(cfg["allow_partial"]))
+    # jobs sharing a cache (folds run in parallel) take turns: two COLMAP runs on one database abort
+    with file_lock(out_dir.parent / f".{out_dir.name}.lock"):
+        _forget_other_settings(out_dir, settings)
+        if _has_result(out_dir):
+            log.info("SfM: %s is complete, skipping", out_dir)
+            return out_dir
+        out_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out_dir / "settings.json", json.dumps(settings, indent=2, sort_keys=True) + "\n")
+        _solve(cfg, _bare(seq), out_dir, list(range(len(cfg["attempts"]))), bool(cfg["allow_partial"]))
     return out_dir
+
+
+def _has_result(out_dir: Path) -> bool:
+    return (out_dir / "sequence.npz").is_file() and (out_dir / "attempts.json").is_file()
 
 
 def is_complete(cfg_sfm, seq: Sequence, out_dir: str | Path) -> bool:
     """Whether :func:`run` would skip: a complete result made with these settings (or with unrecorded ones)."""
     out_dir = Path(out_dir)
-    if not ((out_dir / "sequence.npz").is_file() and (out_dir / "attempts.json").is_file()):
+    if not _has_result(out_dir):
         return False
     recorded = _read_settings(out_dir)
     return recorded is None or recorded == _settings(_cfg(cfg_sfm), seq)

@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from endorecon.data.sequence import read_poses_txt
 from endorecon.evaluation.evaluate import evaluate_mesh
+from endorecon.evaluation.registration import INITS
 from endorecon.geometry import camera_centers
 from endorecon.utils.errors import InputError
 
@@ -71,9 +72,8 @@ def run(cfg: DictConfig) -> Path:
             "pass both (reconstruction poses.txt and ground-truth poses.txt) or neither",
         )
     init = str((cfg.get("registration") or {}).get("init", "auto"))
-    inits = ("auto", "trajectory", "global", "identity")
-    if init not in inits:  # before any mesh is read and sampled
-        raise InputError(f"registration.init={init!r} is not one of {', '.join(inits)}",
+    if init not in INITS:  # before any mesh is read and sampled
+        raise InputError(f"registration.init={init!r} is not one of {', '.join(INITS)}",
                          fix="pass registration.init=auto (trajectory when given, else global)")
     if init == "trajectory" and traj is None:
         raise InputError("registration.init=trajectory needs the camera trajectories",

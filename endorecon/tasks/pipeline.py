@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from endorecon.data.sequence import Sequence, read_poses_txt, sfm_fingerprint, write_poses_txt
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_save_npz, atomic_write_text, file_lock, read_json
+from endorecon.utils.io import atomic_save_npz, atomic_write_text, read_json
 
 log = logging.getLogger(__name__)
 
@@ -46,9 +46,7 @@ def load_sequences(cfg: DictConfig) -> DatasetInfo:
         from endorecon.data.dataset import load_dataset, patients_with_ct
         from endorecon.phantom import ensure_dataset
 
-        data_root = Path(cfg.data.root)
-        with file_lock(data_root.parent / f".{data_root.name}.lock"):  # parallel folds: one generates it
-            root = ensure_dataset(cfg.data.phantom, data_root)
+        root = ensure_dataset(cfg.data.phantom, Path(cfg.data.root))
         return DatasetInfo(root, load_dataset(root), patients_with_ct(root))
     raise InputError(f"unknown data.name {name!r}", fix="use data=phantom")
 
@@ -102,8 +100,7 @@ def run_sfm(cfg: DictConfig, sequences: list[Sequence], data_root: Path | None =
     out = []
     for seq in sequences:
         out_dir = root / _slug(seq.name)
-        with file_lock(root / f".{_slug(seq.name)}.lock"):  # parallel folds share the cache: one runs COLMAP
-            sfm_run(cfg.sfm, seq, out_dir)
+        sfm_run(cfg.sfm, seq, out_dir)
         res = load_result(out_dir)
         if [p.name for p in res.frame_paths] != [p.name for p in seq.frame_paths]:
             raise InputError(f"the SfM cache of {seq.name} lists other frames than the dataset", out_dir,

@@ -71,11 +71,11 @@ def config_differences(recorded: DictConfig, current: DictConfig) -> list[str]:
     recorded ``.hydra/config.yaml`` and ``current`` (unresolved: interpolations compare as written).  A key that
     only one of them has (added or removed since) is not compared."""
     out = []
+    rec, cur = (OmegaConf.to_container(c, resolve=False) for c in (recorded, current))
     for group in _RESULT_GROUPS:
-        if group not in recorded or group not in current:
+        if group not in rec or group not in cur:
             continue
-        a = _leaves(OmegaConf.to_container(recorded, resolve=False)[group], group)
-        b = _leaves(OmegaConf.to_container(current, resolve=False)[group], group)
+        a, b = _leaves(rec[group], group), _leaves(cur[group], group)
         skip = _NO_EFFECT.get(group, set())
         for key in sorted(set(a) & set(b)):
             if key.split(".")[1:2] and key.split(".")[1] in skip:
