@@ -156,3 +156,22 @@ def test_accepts_open3d_meshes_and_ply(tmp_path):
         depth, valid = render_depth(m, K, np.eye(4)[None], H, W)
         assert valid.all()
         np.testing.assert_allclose(depth, 4.0, rtol=1e-5)
+
+
+def test_normals_interpolate_each_triangles_own_corner_normals():
+    """The normal at a hit is (1-u-v) n0 + u n1 + v n2 of *its* triangle's corners, normalised (float64
+    reference): corners in another order, or another triangle's, would fail on a coarse curved mesh."""
+    v, f = cylinder_mesh(3.0, 10.0, n=12, rings=4)
+    r = MeshRenderer((v, f))
+    T = look_pose(np.eye(3), np.array([0.4, -0.3, 0.5]))
+    out = r.render(K, T, H, W)
+    hit = out["hit"]
+    assert hit.mean() > 0.9
+    ids, uvs = out["triangle_ids"][hit], out["uvs"][hit].astype(np.float64)
+    n = r.normals[f[ids]]  # (M, 3 corners, 3)
+    ref = (1 - uvs[:, :1] - uvs[:, 1:]) * n[:, 0] + uvs[:, :1] * n[:, 1] + uvs[:, 1:] * n[:, 2]
+    ref /= np.linalg.norm(ref, axis=1, keepdims=True)
+    np.testing.assert_allclose(out["normals_world"][hit], ref, atol=1e-5)
+    assert np.all(out["normals_world"][~hit] == 0)
+    # the coarse mesh's normals do vary across a triangle, so the test sees the interpolation
+    assert np.ptp(ref[:, 0]) > 0.5
