@@ -45,7 +45,7 @@ from endorecon.data.transforms import resize_sequence
 from endorecon.sfm import colmap
 from endorecon.sfm.clean import clean_sparse, normalize_scale
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_path, atomic_write_text, file_lock
+from endorecon.utils.io import atomic_path, atomic_write_text, file_lock, remove_path
 
 log = logging.getLogger(__name__)
 
@@ -361,8 +361,6 @@ def _forget_other_settings(out_dir: Path, settings: dict) -> None:
     every attempt when the SfM size, mask erosion, frames or intrinsics changed (COLMAP ran on other images),
     only the final result when cleaning or the checks did.  A folder without ``settings.json`` (made before it
     was recorded) is kept as it is."""
-    import shutil
-
     recorded = _read_settings(out_dir)
     if recorded is None or recorded == settings:
         return
@@ -373,11 +371,7 @@ def _forget_other_settings(out_dir: Path, settings: dict) -> None:
     else:
         log.info("SfM: %s was made with other cleaning or checks; choosing and cleaning again", out_dir)
     for name in stale:
-        p = out_dir / name
-        if p.is_dir():
-            shutil.rmtree(p)
-        elif p.exists():
-            p.unlink()
+        remove_path(out_dir / name)
     (out_dir / "settings.json").unlink()
 
 

@@ -42,7 +42,7 @@ from endorecon.data.sequence import read_poses_txt, sfm_fingerprint
 from endorecon.tasks import pipeline
 from endorecon.tasks.pipeline import REFINE_SETTINGS, refine_settings
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_path, atomic_write_text, file_id
+from endorecon.utils.io import atomic_path, atomic_write_text, file_id, remove_path
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +141,7 @@ def _empty_dir(vdir: Path, keep: tuple[str, ...] = ()) -> None:
     """Delete everything in ``vdir`` except the entries named in ``keep``."""
     for p in Path(vdir).iterdir():
         if p.name not in keep:
-            shutil.rmtree(p) if p.is_dir() else p.unlink()
+            remove_path(p)
 
 
 def configured_mesh(cfg: DictConfig, mesh_path: Path, out_dir: Path) -> Path:

@@ -120,6 +120,15 @@ def atomic_save_npz(path: str | Path, **arrays: np.ndarray) -> Path:
     return Path(path)
 
 
+def remove_path(path: str | Path) -> None:
+    """Delete a file or a whole directory; nothing if it is not there."""
+    path = Path(path)
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+
+
 @contextlib.contextmanager
 def atomic_dir(path: str | Path) -> Iterator[Path]:
     """Yield a temporary directory beside ``path``; rename it to ``path`` on success.

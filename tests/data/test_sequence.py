@@ -205,3 +205,19 @@ def test_damaged_sequence_record_is_an_input_error(tmp_path):
     with pytest.raises(InputError, match="corrupt sequence record") as e:
         Sequence.load(path)
     assert e.value.path == path
+
+
+def test_remove_path_file_dir_link_and_missing(tmp_path):
+    from endorecon.utils.io import remove_path
+
+    (tmp_path / "d" / "sub").mkdir(parents=True)
+    (tmp_path / "d" / "sub" / "x.txt").write_text("x")
+    (tmp_path / "f.txt").write_text("f")
+    (tmp_path / "kept").mkdir()
+    (tmp_path / "kept" / "y.txt").write_text("y")
+    (tmp_path / "link").symlink_to(tmp_path / "kept")
+    for name in ["d", "f.txt", "link", "missing"]:
+        remove_path(tmp_path / name)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept"]
+    # a link to a folder is removed, not the folder it points to
+    assert (tmp_path / "kept" / "y.txt").read_text() == "y"
