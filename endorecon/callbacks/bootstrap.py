@@ -106,15 +106,22 @@ class BootstrapCallback(L.Callback):
         rows = ["sequence,frame,dense_simulation,sparse_flow,depth_consistency,flagged,reason"]
         test_seq = None
         depth_eval = depth_eval_capped = None
+        # a sequence refined before an interruption is kept only if these weights made it (a run started again
+        # without ckpt_path=last trains new ones)
+        made_by = pipeline.weights_digest(pl_module)
         for prep in self.prepared:
             seq = prep.seq
             sdir = it_dir / "sequences" / pipeline._slug(seq.name)
             held_out = seq.patient == int(cfg.fold)
+            summary = None
             if (sdir / "summary.json").is_file() and not (held_out and cfg.bootstrap.evaluate):
                 summary = read_json(sdir / "summary.json", f"delete {sdir} so that the sequence is refined again")
-            else:
+                if summary.get("made_by") != made_by:
+                    summary = None
+            if summary is None:
                 depth, std, colors = pipeline.infer_depth(pl_module, seq, prep.cache)
-                summary = pipeline.refine_sequence(cfg, seq, prep.cache, depth, std, colors, prep.excluded, sdir)
+                summary = pipeline.refine_sequence(cfg, seq, prep.cache, depth, std, colors, prep.excluded, sdir,
+                                                   made_by=made_by)
                 if held_out and cfg.bootstrap.evaluate and depth_eval is None:
                     depth_eval, depth_eval_capped = pipeline.evaluate_depth_with_cap(
                         self.info.root, seq, depth, std, cfg.bootstrap.get("depth_cap_mm"))

@@ -276,10 +276,22 @@ def refine_settings(cfg) -> dict | None:
         return None
 
 
+def weights_digest(module: torch.nn.Module) -> str:
+    """Short digest of a module's weights and buffers (names, dtypes, shapes, values): which network made a result."""
+    h = hashlib.sha1()
+    for name, t in module.state_dict().items():
+        h.update(f"{name}:{t.dtype}:{tuple(t.shape)};".encode())
+        flat = t.detach().cpu().contiguous().reshape(-1)  # 1-d: a 0-d tensor cannot be viewed as bytes
+        h.update(flat.view(torch.uint8).numpy().tobytes() if flat.numel() else b"")
+    return h.hexdigest()[:16]
+
+
 def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, excluded: np.ndarray | None,
-                    out_dir: Path) -> dict:
+                    out_dir: Path, made_by: str | None = None) -> dict:
     """One sequence's end-of-iteration work; writes ``out_dir/{mesh.ply, poses.txt, simulated_depth.npz,
-    failures.csv, resfm.json, summary.json}`` and returns the summary.  Skips if ``summary.json`` exists.
+    failures.csv, resfm.json, summary.json}`` and returns the summary.  Skips if ``summary.json`` exists, unless
+    ``made_by`` (e.g. :func:`weights_digest` of the network whose depth this is) differs from the one it records:
+    an iteration trained again after an interruption must not keep sequences the earlier network refined.
 
     A frame range flagged again after being flagged in the previous iteration
     (``<run>/iteration=<i-1>/sequences/<slug>/failures.csv``) is solved again by SfM and its aligned poses
@@ -289,7 +301,11 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
     out_dir = Path(out_dir)
     done = out_dir / "summary.json"
     if done.is_file():
-        return read_json(done, f"delete {out_dir} so that the sequence is refined again")
+        summary = read_json(done, f"delete {out_dir} so that the sequence is refined again")
+        if made_by is None or summary.get("made_by") == made_by:
+            return summary
+        log.info("%s: %s was made by other weights (%s, now %s); refining again", seq.name, done,
+                 summary.get("made_by"), made_by)
     out_dir.mkdir(parents=True, exist_ok=True)
     n = len(seq)
     times = {}
@@ -390,6 +406,8 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         times=times,
         sfm_fingerprint=sfm_fingerprint(seq),  # the next iteration checks its SfM against these poses
     )
+    if made_by is not None:
+        summary["made_by"] = made_by
     atomic_write_text(done, json.dumps(summary, indent=2) + "\n")
     return summary
 

@@ -535,3 +535,52 @@ def test_debug_runs_have_their_own_outputs():
     default, debug = _compose("train", []), _compose("train", ["debug=fast"])
     assert debug.paths.output_root != default.paths.output_root
     assert _compose("train", ["debug=fast", "paths.output_root=/tmp/o"]).paths.output_root == "/tmp/o"
+
+
+def test_end_stage_refines_again_sequences_other_weights_made(tmp_path, monkeypatch):
+    """An iteration whose end stage was interrupted and which then trained again from scratch (a plain rerun,
+    no ckpt_path=last) must not keep the sequences the earlier network refined: summaries record the weights'
+    digest, and only the same weights' are reused."""
+    import types
+
+    import torch
+
+    from endorecon.callbacks.bootstrap import BootstrapCallback
+    from endorecon.tasks import pipeline
+
+    cfg = _compose("train", ["fold=0", "bootstrap.evaluate=false", f"paths.run_dir='{tmp_path}/fold=0'"])
+    it_dir = tmp_path / "fold=0" / "iteration=0"
+    net = torch.nn.Linear(2, 2)
+    refined = []
+
+    def fake_refine(cfg, seq, cache, depth, std, colors, excluded, out_dir, made_by=None):
+        refined.append(seq.name)
+        summary = dict(sequence=seq.name, n_flagged=0, made_by=made_by)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "failures.csv").write_text("frame,dense_simulation,sparse_flow,depth_consistency,flagged,reason\n")
+        (out_dir / "summary.json").write_text(json.dumps(summary))
+        return summary
+
+    monkeypatch.setattr(pipeline, "infer_depth", lambda module, seq, cache: (None, None, None))
+    monkeypatch.setattr(pipeline, "refine_sequence", fake_refine)
+    preps = [types.SimpleNamespace(seq=types.SimpleNamespace(name=f"patient_0{p}/seq_00", patient=p), cache=None,
+                                   excluded=None) for p in (1, 2)]
+    trainer = types.SimpleNamespace(is_global_zero=True, callback_metrics={}, logger=None, global_step=0)
+
+    def end_stage():
+        BootstrapCallback(cfg, preps, it_dir, types.SimpleNamespace(root=tmp_path)).on_train_end(trainer, net)
+
+    end_stage()
+    assert refined == ["patient_01/seq_00", "patient_02/seq_00"]
+    refined.clear()
+    end_stage()  # the same weights (ckpt_path=last): both kept
+    assert refined == []
+    # an earlier network refined patient 1 before the interruption; new weights now
+    with torch.no_grad():
+        net.weight += 1
+    (it_dir / "sequences" / "patient_02__seq_00" / "summary.json").write_text(
+        json.dumps(dict(sequence="patient_02/seq_00", n_flagged=0, made_by=pipeline.weights_digest(net))))
+    end_stage()
+    assert refined == ["patient_01/seq_00"]
+    metrics = json.loads((it_dir / "metrics.json").read_text())
+    assert {s["made_by"] for s in metrics["sequences"]} == {pipeline.weights_digest(net)}
