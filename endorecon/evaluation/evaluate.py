@@ -171,15 +171,20 @@ def evaluate_mesh(
     if needs_global:  # FPFH wants dense clouds whatever n_points is
         ref_points = sample_points(reference, max(n_points, GLOBAL_POINTS), seed + 1)
         global_src = points if n_points >= GLOBAL_POINTS else sample_points(recon, GLOBAL_POINTS, seed + 2)
-    res = register(
-        points, surface, ref_points=ref_points, global_src_points=global_src, cam_centers=cam_centers, gt_cam_centers=gt_cam_centers,
-        cam_rotations=cam_rotations, gt_cam_rotations=gt_cam_rotations, seed=seed, **registration,
-    )
+    fix = ("check trajectory= / gt_trajectory= (camera centres that all coincide give no scale), or leave them out "
+           "for the global registration")
+    try:
+        res = register(
+            points, surface, ref_points=ref_points, global_src_points=global_src, cam_centers=cam_centers,
+            gt_cam_centers=gt_cam_centers, cam_rotations=cam_rotations, gt_cam_rotations=gt_cam_rotations, seed=seed,
+            **registration,
+        )
+    except ValueError as e:  # degenerate trajectories (umeyama), a non-finite initialisation
+        raise InputError(f"the registration found no similarity: {e}", mesh_path, fix) from e
     T = res.ref_from_recon
     if not np.isfinite(T.matrix()).all() or not T.scale > 0:
         raise InputError(f"the registration gave no usable similarity (scale {T.scale}, init {res.init})", mesh_path,
-                         "check trajectory= / gt_trajectory= (camera centres that all coincide give no scale), or "
-                         "leave them out for the global registration")
+                         fix)
     registered = T.apply(points)
     residual = surface.distance(registered)
 

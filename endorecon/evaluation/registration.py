@@ -269,6 +269,10 @@ def icp_sim3(
     """
     if src_points.ndim != 2 or src_points.shape[1] != 3 or len(src_points) < 7:
         raise ValueError(f"src_points must be (N>=7, 3), got {tuple(src_points.shape)}")
+    if not np.isfinite(src_points).all():  # a NaN median made every point an outlier: init returned as is
+        raise ValueError(f"src_points has {int((~np.isfinite(src_points).all(1)).sum())} non-finite row(s)")
+    if not (np.isfinite(init.scale) and init.scale > 0 and np.isfinite(init.R).all() and np.isfinite(init.t).all()):
+        raise ValueError(f"init must be a finite similarity with scale > 0, got scale {init.scale}")
     T = init
     s_lo, s_hi = (init.scale / scale_slack, init.scale * scale_slack) if scale_slack else (0.0, np.inf)
     converged = False

@@ -30,6 +30,10 @@ def umeyama(src, dst, with_scale: bool = True):
     var_s = (xs * xs).sum() / len(xs)
     if with_scale and not var_s > 1e-12 * max(1.0, float((s_t * s_t).sum() / len(s_t))):
         raise ValueError("src points all coincide: no similarity (scale) can be estimated from them")
+    var_d = (xd * xd).sum() / len(xd)
+    if with_scale and not var_d > 1e-12 * max(1.0, float((d_t * d_t).sum() / len(d_t))):
+        # the least-squares scale would be 0: every src point mapped onto one dst point
+        raise ValueError("dst points all coincide: no similarity (scale) maps src onto them")
     cov = xd.T @ xs / len(xs)
     U, S, Vh = torch.linalg.svd(cov)
     D = torch.eye(3, dtype=torch.float64)

@@ -143,6 +143,10 @@ def test_coincident_camera_centres_are_an_error_not_nan(ct_path, tmp_path):
     with pytest.raises((InputError, ValueError), match="coincide"):
         evaluate_mesh(ct_path, ct_path, tmp_path / "out", n_points=500, cam_centers=centres, gt_cam_centers=gt)
     assert not (tmp_path / "out" / "metrics.json").exists()
+    # the ground truth's centres coinciding: the least-squares scale was 0 and ICP divided by it
+    with pytest.raises(InputError, match="coincide"):
+        evaluate_mesh(ct_path, ct_path, tmp_path / "out", n_points=500, cam_centers=gt, gt_cam_centers=centres)
+    assert not (tmp_path / "out" / "metrics.json").exists()
 
 
 def test_residual_stats_refuse_non_finite():

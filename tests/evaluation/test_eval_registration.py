@@ -129,3 +129,9 @@ def test_register_rejects_bad_arguments(ct_mesh):
         register(src, surface, init="magic")
     with pytest.raises(ValueError, match="at least 3"):
         register(src, surface, cam_centers=np.zeros((2, 3)), gt_cam_centers=np.zeros((2, 3)))
+    bad = src.copy()
+    bad[:5] = np.nan  # the NaN median distance made every point an outlier: the init came back, "not converged"
+    with pytest.raises(ValueError, match="non-finite"):
+        icp_sim3(bad, surface, Sim3.identity())
+    with pytest.raises(ValueError, match="scale > 0"):
+        icp_sim3(src, surface, Sim3(0.0, np.eye(3), np.zeros(3)))

@@ -23,3 +23,15 @@ def test_umeyama_rejects_bad_input():
         umeyama(np.zeros((2, 3)), np.zeros((2, 3)))
     with pytest.raises(ValueError, match="non-finite"):
         umeyama(np.full((4, 3), np.nan), np.zeros((4, 3)))
+
+
+def test_umeyama_refuses_coincident_dst_instead_of_scale_zero():
+    import pytest
+
+    src = np.random.default_rng(0).normal(size=(6, 3))
+    with pytest.raises(ValueError, match="dst points all coincide"):
+        umeyama(src, np.tile([1.0, 2.0, 3.0], (6, 1)))
+    with pytest.raises(ValueError, match="dst points all coincide"):  # a static reference with rounding jitter
+        umeyama(src, np.tile([1.0, 2.0, 3.0], (6, 1)) + 1e-9 * np.random.default_rng(1).normal(size=(6, 3)))
+    s, _, _ = umeyama(src, np.tile([1.0, 2.0, 3.0], (6, 1)), with_scale=False)  # rigid: still defined
+    assert s == 1.0
