@@ -96,17 +96,18 @@ def warp_depth(
         std_j: optional (B, 1, H, W) std of depth_j, propagated linearly.
     Returns:
         depth_j_in_i: (B, 1, H, W), 0 where invalid.
-        valid: (B, 1, H, W) bool: inside j's image, in front of both cameras, both depths > min_depth,
+        valid: (B, 1, H, W) bool: inside j's image, in front of both cameras, both depths finite and > min_depth,
             j's sample drawn (all but ``SUPPORT_TOL`` of its bilinear weight) from pixels with depth.
         std_j_in_i: (B, 1, H, W) or None.
     """
     B, _, H, W = check_shape(depth_j, "depth_j", (None, 1, None, None))
     check_shape(depth_i, "depth_i", (B, 1, H, W))
     X_j, uv_j, z_j = _points_in_j(depth_i, K, cam_j_from_cam_i)
-    d_j, inside = sample_bilinear(depth_j, uv_j)
-    # A sample that blends in a pixel without depth (<= min_depth: a hole, a masked-out pixel) is no
-    # surface: require (almost) all of the bilinear weight on pixels with depth, and renormalise by it.
-    support, _ = sample_bilinear((depth_j > min_depth).to(depth_j.dtype), uv_j)
+    # A sample that blends in a pixel without depth (<= min_depth: a hole, a masked-out pixel; or not finite)
+    # is no surface: require (almost) all of the bilinear weight on pixels with depth, and renormalise by it.
+    has_depth = torch.isfinite(depth_j) & (depth_j > min_depth)
+    d_j, inside = sample_bilinear(torch.where(has_depth, depth_j, torch.zeros_like(depth_j)), uv_j)
+    support, _ = sample_bilinear(has_depth.to(depth_j.dtype), uv_j)
     full = support > 1.0 - SUPPORT_TOL
     d_j = torch.where(full, d_j / torch.where(full, support, torch.ones_like(support)), torch.zeros_like(d_j))
     zj_safe = torch.where(z_j > min_depth, z_j, torch.ones_like(z_j))
@@ -116,7 +117,8 @@ def warp_depth(
     r3 = R[:, :, 2].view(B, 3, 1, 1)
     a = (r3 * X_j).sum(1, keepdim=True) / zj_safe  # d z_i / d d_j
     z_i = a * d_j - (r3[:, :, 0, 0] * t).sum(-1).view(B, 1, 1, 1)
-    valid = inside & (z_j > min_depth) & (d_j > min_depth) & (depth_i > min_depth) & (z_i > min_depth)
+    valid = (inside & (z_j > min_depth) & (d_j > min_depth) & (depth_i > min_depth) & (z_i > min_depth)
+             & torch.isfinite(depth_i) & torch.isfinite(z_i))
     out = torch.where(valid, z_i, torch.zeros_like(z_i))
     std_out = None
     if std_j is not None:

@@ -77,6 +77,20 @@ def test_warp_depth_refuses_a_sample_that_blends_in_a_pixel_without_depth():
     assert torch.allclose(std_w[valid], torch.full_like(std_w[valid], 0.1))
 
 
+
+def test_warp_depth_non_finite_depths_are_invalid_not_inf():
+    # an overflowed prediction (inf) or NaN in j, or inf in i: never a valid warped depth, and no NaN elsewhere
+    depth_i = torch.full((1, 1, H, W), 2.0, dtype=D)
+    depth_j = depth_i.clone()
+    depth_j[..., 3, 3] = float("inf")
+    depth_j[..., 6, 9] = float("nan")
+    depth_i[..., 10, 2] = float("inf")
+    warped, valid, std_w = warp_depth(depth_j, depth_i, K_(), translation([0.0, 0.0, 0.0]),
+                                      std_j=torch.full_like(depth_j, 0.1))
+    assert not valid[0, 0, 3, 3] and not valid[0, 0, 6, 9] and not valid[0, 0, 10, 2]
+    assert torch.isfinite(warped).all() and torch.isfinite(std_w).all()
+    assert valid.sum() == H * W - 3 and torch.allclose(warped[valid], depth_i[valid])
+
 def test_warp_gradcheck():
     depth_i = (torch.rand(1, 1, 4, 5, dtype=D) * 0.1 + 3.0).requires_grad_()
     depth_j = (torch.rand(1, 1, 4, 5, dtype=D) * 0.1 + 3.0).requires_grad_()
