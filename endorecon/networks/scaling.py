@@ -120,7 +120,14 @@ def scale_depth(
     check_shape(std, "std", tuple(depth.shape))
     scale, has = depth_scale(depth, sparse_depth, sparse_valid, eps, mode)
     s = scale.view(-1, 1, 1, 1)
-    return depth * s, std * s, scale, has
+    return _times_scale(depth, s), _times_scale(std, s), scale, has
+
+
+def _times_scale(x: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """x * s, with the non-finite entries of x passed through unscaled (same values for s > 0): d(x s)/ds sums x
+    over every pixel, and one inf the losses leave out made s's gradient, so the whole batch's, NaN (0 * inf)."""
+    finite = torch.isfinite(x)
+    return torch.where(finite, torch.where(finite, x, torch.ones_like(x)) * s, x)
 
 
 def _gaussian_sum(x: torch.Tensor, sigma_px: float) -> torch.Tensor:

@@ -40,6 +40,24 @@ def test_a_nan_prediction_at_a_point_leaves_only_that_point_out(mode):
     assert has.item() and scale.item() == pytest.approx(2.0)
 
 
+
+@pytest.mark.parametrize("mode", ["ratio_of_sums", "log_mean"])
+def test_a_non_finite_pixel_outside_the_loss_leaves_the_gradients_finite(mode):
+    # one overflowed prediction (inf) where no loss looks: its value stays inf, but the scale's gradient
+    # summed 0 * inf = NaN over every pixel and so made every sparse pixel's gradient NaN
+    depth = (torch.rand(1, 1, 4, 5, dtype=torch.float64) + 0.5).requires_grad_()
+    std = torch.full_like(depth, 0.1).requires_grad_()
+    sparse = torch.full_like(depth, 2.0)
+    valid = torch.zeros_like(depth, dtype=torch.bool)
+    valid[..., 1, 1:4] = True
+    bad = torch.where(torch.arange(20).view(1, 1, 4, 5) == 0, torch.tensor(float("inf"), dtype=depth.dtype), depth)
+    d, s, scale, _ = scale_depth(bad, std, sparse, valid, mode=mode)
+    assert torch.isinf(d[0, 0, 0, 0]) and torch.isfinite(scale).all()
+    loss = ((d - sparse)[valid] ** 2).sum() + s[valid].sum()
+    loss.backward()
+    assert torch.isfinite(depth.grad).all() and torch.isfinite(std.grad).all()
+    assert depth.grad[valid].abs().sum() > 0
+
 def test_frames_without_points_keep_scale_one():
     depth = torch.full((2, 1, 4, 4), 2.0)
     sparse = torch.full_like(depth, 6.0)
