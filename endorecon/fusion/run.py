@@ -68,7 +68,10 @@ def build_fusion(cfg_fusion, median_depth: float | None = None) -> AdaptiveTSDF 
         voxel = float(get("voxel_fraction")) * med
     factor = get("depth_max_factor")
     depth_max = float("inf")
-    if factor is not None and med is not None and math.isfinite(med) and med > 0:
+    if factor is not None:
+        if med is None or not (math.isfinite(med) and med > 0):  # the cut-off was dropped without a word
+            raise InputError(f"fusion.depth_max_factor is set and the median depth ({median_depth}) is not a "
+                             f"positive number", fix="fuse frames with valid depth, or set fusion.depth_max_factor=null")
         depth_max = float(factor) * med
     common = dict(
         voxel_size=float(voxel),
@@ -121,7 +124,7 @@ def fuse_frames(cfg_fusion, frames_iter: Iterable[Mapping], out_path: str | Path
         frames_iter: yields dicts ``{depth (H,W), std (H,W), color (H,W,3) in [0,1],
             K (3,3) pixel-centre, cam_from_world (4,4), mask (H,W) bool | None}``.
         out_path: mesh file to write (``mesh.ply``).
-        median_depth: the sequence's median valid depth; None -> that of the first frame.
+        median_depth: the sequence's median valid depth; None -> that of the first frame with valid depth.
         total: number of frames, for the progress bar (default: ``len(frames_iter)`` if defined).
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -133,19 +136,27 @@ def fuse_frames(cfg_fusion, frames_iter: Iterable[Mapping], out_path: str | Path
     if total is None and hasattr(frames_iter, "__len__"):
         total = len(frames_iter)  # type: ignore[arg-type]
     it = iter(frames_iter)
-    try:
-        first = next(it)
-    except StopIteration:
-        raise InputError("fusion: no frames to fuse", out_path, fix="check the failure flags / registered frames") from None
-    _check_frame_keys(first, 0, cfg_fusion)
+    head = []  # frames read ahead until one has valid depth (its median sets the voxel and the cut-off)
+    for fr in it:
+        _check_frame_keys(fr, len(head), cfg_fusion)
+        head.append(fr)
+        if median_depth is not None:
+            break
+        med = median_valid_depth(fr["depth"], fr.get("mask"))
+        if math.isfinite(med) and med > 0:
+            median_depth = med
+            break
+    if not head:
+        raise InputError("fusion: no frames to fuse", out_path, fix="check the failure flags / registered frames")
     if median_depth is None:
-        median_depth = median_valid_depth(first["depth"], first.get("mask"))
+        raise InputError(f"fusion: none of the {len(head)} frames has a finite, positive depth inside its mask",
+                         out_path, "check the depth maps (NaN, zeros) and the mask")
     volume = build_fusion(cfg_fusion, median_depth)
     t0 = time.perf_counter()
     n = 0
     with Progress(TextColumn("fusion"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True) as bar:
         task = bar.add_task("fuse", total=total)
-        for fr in chain([first], it):
+        for fr in chain(head, it):
             _check_frame_keys(fr, n, cfg_fusion)
             volume.integrate(fr["depth"], fr.get("std"), fr["color"], fr["K"], fr["cam_from_world"], fr.get("mask"))
             n += 1

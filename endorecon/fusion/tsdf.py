@@ -374,6 +374,12 @@ class _TSDFBase:
         # trimming and the free-space check can split pieces off the surface: the size rule holds for the saved mesh too
         mesh = drop_small_components(mesh, self.min_component_fraction)
         path = Path(path)
+        if "indices" not in mesh.triangle or len(mesh.triangle.indices) == 0:
+            # an empty file would be skipped as done by the next run and read as "corrupt" by evaluation
+            raise InputError("fusion left no surface to save: no voxel was seen by fusion.mesh_weight_threshold "
+                             "frames with usable depth and std (or the trims removed it all)", path,
+                             "check the depth / std maps and the frames' masks, lower fusion.mesh_weight_threshold, "
+                             "or relax fusion.free_space_max_fraction / fusion.max_std_ratio")
         with atomic_path(path) as tmp:
             write_mesh_ply(tmp, mesh, boundary_trim_rings=self.boundary_trim_rings)
         return path

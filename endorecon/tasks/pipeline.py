@@ -172,6 +172,9 @@ def fuse_sequence(cfg_fusion, seq: Sequence, depth, std, colors, cam_from_world,
                          fix="check SfM (registered frames) and failure.thresholds")
     d = depth[idx, 0]
     m = torch.from_numpy(seq.mask)[None].expand(len(idx), -1, -1) & (d > 0) & torch.isfinite(d)
+    if not bool(m.any()):
+        raise InputError(f"{seq.name}: no finite, positive depth inside the mask in the {len(idx)} frame(s) to fuse",
+                         fix="check the network's depth (NaN / zeros) and the mask")
     med = float(d[m].median())
     volume = build_fusion(cfg_fusion, med)
     for i in idx:

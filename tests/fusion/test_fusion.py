@@ -872,3 +872,27 @@ def test_saved_adaptive_mesh_loses_surface_fused_with_a_large_std(tmp_path):
     assert build_fusion({"name": "adaptive", "voxel_size": voxel, "max_std_ratio": 2.0}).max_std_ratio == 2.0
     with pytest.raises(InputError, match="max_std_ratio"):
         build_fusion({"name": "adaptive", "voxel_size": voxel, "max_std_ratio": 0.5})
+
+
+def test_no_usable_depth_is_an_error_not_an_empty_mesh(tmp_path):
+    """Frames whose depth or std fusion cannot use gave an empty mesh.ply, logged as written, which the next
+    run then skipped as done; a first frame without valid depth dropped the depth cut-off without a word."""
+    cfg = {"name": "adaptive", "voxel_size": 0.02, "compile": False}
+
+    def frame(depth, std):
+        return dict(depth=np.full((H, W), depth, np.float32), std=np.full((H, W), std, np.float32),
+                    color=np.full((H, W, 3), 0.25, np.float32), K=K, cam_from_world=np.eye(4))
+
+    out = tmp_path / "m.ply"
+    with pytest.raises(InputError, match="none of the 2 frames has a finite, positive depth"):
+        fuse_frames(cfg, [frame(np.nan, 0.01), frame(0.0, 0.01)], out)
+    with pytest.raises(InputError, match="no surface to save") as e:
+        fuse_frames(cfg, [frame(1.0, 0.0), frame(1.0, np.nan)], out)  # no usable std anywhere
+    assert e.value.path == out and not out.exists() and list(tmp_path.iterdir()) == []
+    # the cut-off comes from the first frame with valid depth: 2 x 1.0, so the 3.0 frame is cut, not fused
+    fuse_frames({**cfg, "depth_max_factor": 2.0}, [frame(np.nan, 0.01), frame(1.0, 0.01), frame(3.0, 0.01)], out)
+    z = read_mesh_ply(out).vertex.positions.numpy()[:, 2]
+    assert np.abs(z - 1.0).max() < 0.05
+    with pytest.raises(InputError, match="depth_max_factor is set"):
+        build_fusion({"name": "adaptive", "voxel_size": 0.1, "depth_max_factor": 2.0}, float("nan"))
+    assert build_fusion({"name": "adaptive", "voxel_size": 0.1, "depth_max_factor": None}, None).depth_max == float("inf")
