@@ -72,6 +72,9 @@ def config_hash(*parts) -> str:
     return h.hexdigest()[:10]
 
 
+SFM_NO_EFFECT = ("colmap_verbose", "num_threads")  # sfm settings that change nothing SfM keeps
+
+
 def sfm_cache_dir(cfg: DictConfig, data_root: Path | None) -> Path:
     """``paths.cache_dir/sfm/<hash of the sfm settings, the dataset stamp and the resolved data path>``.
 
@@ -83,12 +86,23 @@ def sfm_cache_dir(cfg: DictConfig, data_root: Path | None) -> Path:
     if data_root is not None and (Path(data_root) / "dataset.json").is_file():
         stamp = (Path(data_root) / "dataset.json").read_text()
     root = Path(cfg.paths.cache_dir) / "sfm"
-    key = config_hash(cfg.sfm, stamp, str(Path(data_root).resolve()) if data_root is not None else "None")
-    legacy = config_hash(cfg.sfm, stamp, str(data_root))
-    if not (root / key).is_dir() and (root / legacy).is_dir():
-        log.info("SfM cache %s (made before its key used the resolved data path) reused", root / legacy)
-        return root / legacy
+    resolved = str(Path(data_root).resolve()) if data_root is not None else "None"
+    sfm = OmegaConf.to_container(cfg.sfm, resolve=True) if isinstance(cfg.sfm, DictConfig) else dict(cfg.sfm)
+    # COLMAP's log and thread count change nothing the cache keeps (train.py's settings check ignores them too)
+    key = config_hash({k: v for k, v in sfm.items() if k not in SFM_NO_EFFECT}, stamp, resolved)
+    if (root / key).is_dir():
+        return root / key
+    # caches made before: keyed by every sfm setting (those two at the values given, or at their defaults), and
+    # before that by the data path as given
+    olds = [sfm, {**sfm, "num_threads": -1, "colmap_verbose": False}]
+    for old in olds:
+        for path in (resolved, str(data_root)):
+            legacy = config_hash(old, stamp, path)
+            if (root / legacy).is_dir():
+                log.info("SfM cache %s (made under an earlier key) reused", root / legacy)
+                return root / legacy
     return root / key
+
 
 
 def run_sfm(cfg: DictConfig, sequences: list[Sequence], data_root: Path | None = None) -> list[Sequence]:

@@ -50,7 +50,7 @@ _NO_EFFECT = {
     "fusion": {"compile", "device", "block_count"},
     "failure": {"batch_size"},
     "pgo": {"progress", "edge_chunk", "std_cache_mb"},
-    "sfm": {"colmap_verbose", "num_threads"},
+    "sfm": set(pipeline.SFM_NO_EFFECT),
     "bootstrap": {"targets", "run_missing", "evaluate", "depth_cap_mm"},
     "trainer": {"_target_", "accelerator", "devices", "log_every_n_steps", "num_sanity_val_steps",
                 "enable_model_summary", "limit_val_batches", "deterministic"},
@@ -196,7 +196,7 @@ def run(cfg: DictConfig) -> float | None:
             iteration_dir(cfg, todo[0]),
             f"run: {_command_for_iteration(cfg, todo[0])}  (or bootstrap.run_missing=true)",
         )
-    sfm_seqs = pipeline.run_sfm(cfg, info.sequences, info.root)
+    sfm_seqs = pipeline.run_sfm(cfg, info.sequences, info.root) if todo else []
     metrics = None
     for it in todo:
         # a checkpoint path resumes the first missing iteration only: the later ones train from their start

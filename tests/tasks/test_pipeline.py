@@ -139,14 +139,20 @@ def test_sfm_cache_is_found_through_a_symlinked_data_root(tmp_path):
     data.mkdir(parents=True)
     (data / "dataset.json").write_text('{"patients": 1}')
     (tmp_path / "link").symlink_to(tmp_path / "real")
-    cfg = OmegaConf.create({"sfm": {"num_threads": -1}, "paths": {"cache_dir": str(tmp_path / "cache")}})
+    cfg = OmegaConf.create({"sfm": {"max_size": 960, "num_threads": -1, "colmap_verbose": False},
+                            "paths": {"cache_dir": str(tmp_path / "cache")}})
     real, linked = sfm_cache_dir(cfg, data), sfm_cache_dir(cfg, tmp_path / "link" / "phantom")
     assert real == linked and real.parent == tmp_path / "cache" / "sfm"
-    other = OmegaConf.create({**OmegaConf.to_container(cfg), "sfm": {"num_threads": 1}})
+    other = OmegaConf.create({**OmegaConf.to_container(cfg), "sfm": {"max_size": 640, "num_threads": -1}})
     assert sfm_cache_dir(other, data) != real  # other SfM settings: another model
+    # COLMAP's log and threads change nothing kept: the same cache (a new one ran COLMAP on every sequence)
+    quiet = OmegaConf.create({**OmegaConf.to_container(cfg), "sfm": {"max_size": 960, "num_threads": 1,
+                                                                     "colmap_verbose": True}})
+    assert sfm_cache_dir(quiet, data) == real
     legacy = tmp_path / "cache" / "sfm" / config_hash(cfg.sfm, '{"patients": 1}', str(tmp_path / "link" / "phantom"))
     legacy.mkdir(parents=True)
     assert sfm_cache_dir(cfg, tmp_path / "link" / "phantom") == legacy
+    assert sfm_cache_dir(quiet, tmp_path / "link" / "phantom") == legacy  # keyed with every setting, defaults
     assert sfm_cache_dir(cfg, data) == real  # its own key for the path it was made under
 
 
