@@ -31,8 +31,10 @@ is scaled so that the median sparse z-depth is 1 (factor in ``attempts.json``), 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -168,7 +170,9 @@ def _run_attempt(sfm_seq: Sequence, names: list[str], cfg: dict, k: int, out_dir
         log.info("attempt %d: settings changed since the stored run; running it again", k)
         res = None
     if res is not None:
-        res["problems"] = _problems(res, cfg)  # the checks may have changed since
+        # the checks may have changed since: the second-model count too (sfm.min_model_size)
+        res["models"] = sum(int(n) >= int(cfg["min_model_size"]) for n in res.get("model_sizes", []))
+        res["problems"] = _problems(res, cfg)
         res["passed"] = not res["problems"]
         log.info("attempt %d (%s): already done, %d/%d registered", k, res["name"], res["registered"], len(names))
         return res
@@ -315,13 +319,23 @@ def run(cfg_sfm, seq: Sequence, out_dir: str | Path) -> Path:
     settings = _settings(cfg, seq)
     # jobs sharing a cache (folds run in parallel) take turns: two COLMAP runs on one database abort
     with file_lock(out_dir.parent / f".{out_dir.name}.lock"):
-        _forget_other_settings(out_dir, settings)
+        kept = out_dir / ".other_settings"  # what other settings made, back in place if these fail
+        if kept.is_dir():  # a run that set it aside was killed: the earlier result is still the one to keep
+            _restore(out_dir, kept)
+        _set_aside_other_settings(out_dir, settings, kept)
         if _has_result(out_dir):
             log.info("SfM: %s is complete, skipping", out_dir)
             return out_dir
         out_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out_dir / "settings.json", json.dumps(settings, indent=2, sort_keys=True) + "\n")
-        _solve(cfg, _bare(seq), out_dir, list(range(len(cfg["attempts"]))), bool(cfg["allow_partial"]))
+        try:
+            _solve(cfg, _bare(seq), out_dir, list(range(len(cfg["attempts"]))), bool(cfg["allow_partial"]))
+        except BaseException:
+            if kept.is_dir():
+                _restore(out_dir, kept)
+                log.warning("SfM: the result made with the earlier settings is back in %s", out_dir)
+            raise
+        remove_path(kept)
     return out_dir
 
 
@@ -335,7 +349,7 @@ def is_complete(cfg_sfm, seq: Sequence, out_dir: str | Path) -> bool:
     if not _has_result(out_dir):
         return False
     recorded = _read_settings(out_dir)
-    return recorded is None or recorded == _settings(_cfg(cfg_sfm), seq)
+    return recorded is None or _same_settings(recorded, _settings(_cfg(cfg_sfm), seq))
 
 
 # What the SfM-resolution images and the COLMAP attempts are made from; the rest of the settings (cleaning, the
@@ -345,8 +359,38 @@ def _settings(cfg: dict, seq: Sequence) -> dict:
     rest = {k: v for k, v in cfg.items() if k not in ("max_size", "mask_erode_px", "colmap_verbose", "num_threads")}
     return {"images": {"max_size": cfg["max_size"], "mask_erode_px": cfg["mask_erode_px"],
                        "frames": [len(seq), seq.height, seq.width],
-                       "intrinsics": np.asarray(seq.intrinsics, dtype=float).round(9).tolist()},
+                       "intrinsics": np.asarray(seq.intrinsics, dtype=float).round(9).tolist(),
+                       "mask": _mask_digest(seq.mask), "frame_files": _frames_digest(seq)},
             "rest": json.loads(json.dumps(rest, sort_keys=True))}
+
+
+def _mask_digest(mask: np.ndarray) -> str:
+    m = np.asarray(mask, dtype=bool)
+    return hashlib.sha1(f"{m.shape}".encode() + np.packbits(m).tobytes()).hexdigest()[:16]
+
+
+def _frames_digest(seq: Sequence) -> str:
+    """The frames' names, sizes and modification times (cheap for long videos): other frames written into the
+    same folder make SfM again."""
+    h = hashlib.sha1()
+    for p in seq.frame_paths:
+        try:
+            st = Path(p).stat()
+            h.update(f"{Path(p).name}:{st.st_size}:{st.st_mtime_ns};".encode())
+        except OSError:  # a missing frame: _check_frames names it before SfM runs
+            h.update(f"{Path(p).name}:missing;".encode())
+    return h.hexdigest()[:16]
+
+
+def _same_settings(recorded: dict, settings: dict) -> bool:
+    """``recorded`` equals ``settings`` on what it recorded: a folder made before a key was recorded (the mask,
+    the frames' bytes) is judged by the keys it has."""
+    return recorded.get("rest") == settings["rest"] and _same_images(recorded, settings)
+
+
+def _same_images(recorded: dict, settings: dict) -> bool:
+    rec = recorded.get("images")
+    return isinstance(rec, dict) and all(rec[k] == settings["images"].get(k) for k in rec)
 
 
 def _read_settings(out_dir: Path) -> dict | None:
@@ -356,23 +400,39 @@ def _read_settings(out_dir: Path) -> dict | None:
         return None
 
 
-def _forget_other_settings(out_dir: Path, settings: dict) -> None:
-    """Remove what ``out_dir`` holds from other settings, so that it is made again with these: the images and
-    every attempt when the SfM size, mask erosion, frames or intrinsics changed (COLMAP ran on other images),
-    only the final result when cleaning or the checks did.  A folder without ``settings.json`` (made before it
-    was recorded) is kept as it is."""
+def _set_aside_other_settings(out_dir: Path, settings: dict, kept: Path) -> None:
+    """Move what ``out_dir`` holds from other settings into ``kept`` (:func:`run` puts it back if these settings
+    fail, and deletes it once they succeed), so that it is made again with these: the images and every attempt
+    when the SfM size, mask erosion, mask, frames or intrinsics changed (COLMAP ran on other images), only the
+    final result when cleaning or the checks did.  A folder without ``settings.json`` (made before it was
+    recorded) is kept as it is; one made before a key was recorded is judged by those it has, and its
+    ``settings.json`` gains the new keys."""
     recorded = _read_settings(out_dir)
-    if recorded is None or recorded == settings:
+    if recorded is None:
         return
-    stale = ["sequence.npz", "attempts.json", "model"]
-    if recorded.get("images") != settings["images"]:
+    if _same_settings(recorded, settings):
+        if recorded != settings:
+            atomic_write_text(out_dir / "settings.json", json.dumps(settings, indent=2, sort_keys=True) + "\n")
+        return
+    stale = ["sequence.npz", "attempts.json", "model", "settings.json"]
+    if not _same_images(recorded, settings):
         stale += ["images", "mask.png", "attempts"]
-        log.warning("SfM: %s was made at another size, mask erosion or intrinsics; running SfM again", out_dir)
+        log.warning("SfM: %s was made from other images (size, mask, erosion, frames or intrinsics); running SfM "
+                    "again", out_dir)
     else:
         log.info("SfM: %s was made with other cleaning or checks; choosing and cleaning again", out_dir)
+    kept.mkdir(parents=True)
     for name in stale:
-        remove_path(out_dir / name)
-    (out_dir / "settings.json").unlink()
+        if (out_dir / name).exists():
+            os.replace(out_dir / name, kept / name)
+
+
+def _restore(out_dir: Path, kept: Path) -> None:
+    """Put back what :func:`_set_aside_other_settings` moved into ``kept``, over what the failed run made."""
+    for p in kept.iterdir():
+        remove_path(out_dir / p.name)
+        os.replace(p, out_dir / p.name)
+    remove_path(kept)
 
 
 def load_result(out_dir: str | Path) -> Sequence:

@@ -2,6 +2,7 @@
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -111,11 +112,40 @@ def test_other_settings_make_sfm_again(solved, phantom, cfg, tmp_path, monkeypat
     assert stage.is_complete(stricter, seq, copy) and not stage.is_complete(cfg, seq, copy)
     # another SfM size: new images, COLMAP runs again
     smaller = OmegaConf.merge(cfg, {"max_size": 160})
+    sizes = []
+
+    def mapping_sees_the_new_images(images_dir, *a, **k):
+        with Image.open(Path(images_dir) / "000000.png") as im:
+            sizes.append(im.size)
+        raise Mapped
+
+    monkeypatch.setattr(colmap, "run_mapping", mapping_sees_the_new_images)
     with pytest.raises(Mapped):
         stage.run(smaller, seq, copy)
-    with Image.open(copy / "images" / "000000.png") as im, Image.open(copy / "mask.png") as m:
-        assert im.size == m.size == (160, 128)
-    assert not (copy / "sequence.npz").exists()
+    assert sizes == [(160, 128)]
+    # ... and it failed: the result of the earlier settings is back, whole (it was deleted before)
+    assert stage.is_complete(stricter, seq, copy) and not stage.is_complete(smaller, seq, copy)
+    assert len(stage.load_result(copy).points_xyz) > 0 and not (copy / ".other_settings").exists()
+    with Image.open(copy / "images" / "000000.png") as im:
+        assert im.size != (160, 128)
+    # a corrected mask (same size) is other images too: the SfM CLI's hint is to run again with a fixed mask
+    sizes.clear()
+    corrected = seq.mask.copy()
+    corrected[: seq.height // 4] = False  # e.g. a text overlay masked out
+    assert (corrected != seq.mask).any()
+    masked = seq.replace(mask=corrected)
+    assert not stage.is_complete(stricter, masked, copy)
+    with pytest.raises(Mapped):
+        stage.run(stricter, masked, copy)
+    assert len(sizes) == 1
+    # a folder recorded before the mask and frame keys existed is judged by the keys it has, then upgraded
+    rec = json.loads((copy / "settings.json").read_text())
+    for key in ("mask", "frame_files"):
+        del rec["images"][key]
+    (copy / "settings.json").write_text(json.dumps(rec))
+    assert stage.is_complete(stricter, seq, copy)
+    stage.run(stricter, seq, copy)
+    assert "mask" in json.loads((copy / "settings.json").read_text())["images"]
 
 
 def _black(path, h=192, w=240):
@@ -213,3 +243,20 @@ def test_cli_resumes_complete_output(solved, phantom, capsys):
     seq_dir = phantom[1].frame_paths[0].parents[1]
     assert main([f"input={seq_dir}", f"out={out}"]) == 0
     assert f"{int(res.registered.sum())}/{len(res)} frames registered" in capsys.readouterr().err.replace("\n", "")
+
+
+def test_reused_attempt_counts_second_models_with_the_current_min_model_size(tmp_path):
+    """A stored attempt is judged again with the current checks; its second-model count was kept from the
+    min_model_size it ran with, so raising that setting could not make it pass."""
+    cfg = stage._cfg({"min_model_size": 3, "min_points": 10})
+    attempt = cfg["attempts"][0]
+    adir = stage._attempt_dir(tmp_path, 0, attempt)
+    adir.mkdir(parents=True)
+    names = [f"{i:06d}.png" for i in range(100)]
+    stored = dict(index=0, name=attempt["name"], params=attempt, registered=95, frames=100, models=2,
+                  model_sizes=[95, 5], points=500, registered_fraction=0.95)
+    (adir / "result.json").write_text(json.dumps(stored))
+    res = stage._run_attempt(None, names, cfg, 0, tmp_path)
+    assert not res["passed"] and res["models"] == 2
+    res = stage._run_attempt(None, names, {**cfg, "min_model_size": 10}, 0, tmp_path)
+    assert res["passed"] and res["models"] == 1, res["problems"]
