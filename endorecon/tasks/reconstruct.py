@@ -45,7 +45,7 @@ from endorecon.data.sequence import Sequence, list_frames, load_sequence_folder,
 from endorecon.data.transforms import crop_sequence, resize_sequence
 from endorecon.tasks import pipeline
 from endorecon.utils.errors import InputError
-from endorecon.utils.io import atomic_path, atomic_save_npz, atomic_write_text, file_id
+from endorecon.utils.io import atomic_dir, atomic_path, atomic_save_npz, atomic_write_text, file_id
 
 log = logging.getLogger(__name__)
 
@@ -402,14 +402,21 @@ def run(cfg: DictConfig) -> Path:
     rec = out / "reconstruction"
     # the depth maps and the fusion / failure / PGO settings that reconstruction/ is made from
     rec_stamp = json.dumps({"depth": stamp, "settings": pipeline.refine_settings(cfg)}, sort_keys=True)
+    no_flags = np.zeros(len(small), bool)
     if (rec / "summary.json").is_file() and _read_json(rec / "summary.json").get("stamp") != rec_stamp:
+        # made again beside the old one, which is replaced only once the new one is complete
         log.info("reconstruction/ was made from other depth maps or settings: running it again")
-        shutil.rmtree(rec)
-    refined_before = (rec / "summary.json").is_file()
-    summary = pipeline.refine_sequence(cfg, small, cache, depth, std, colors, np.zeros(len(small), bool), rec)
-    if summary.get("stamp") != rec_stamp:
-        summary["stamp"] = rec_stamp
-        atomic_write_text(rec / "summary.json", json.dumps(summary, indent=2) + "\n")
+        with atomic_dir(rec) as tmp:
+            summary = pipeline.refine_sequence(cfg, small, cache, depth, std, colors, no_flags, tmp)
+            summary["stamp"] = rec_stamp
+            atomic_write_text(tmp / "summary.json", json.dumps(summary, indent=2) + "\n")
+        refined_before = False
+    else:
+        refined_before = (rec / "summary.json").is_file()
+        summary = pipeline.refine_sequence(cfg, small, cache, depth, std, colors, no_flags, rec)
+        if summary.get("stamp") != rec_stamp:
+            summary["stamp"] = rec_stamp
+            atomic_write_text(rec / "summary.json", json.dumps(summary, indent=2) + "\n")
     timed("failure detection + PGO + fusion", t0, skipped=refined_before)
     with atomic_path(out / "mesh.ply") as tmp:
         shutil.copyfile(rec / "mesh.ply", tmp)

@@ -401,6 +401,22 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     assert not third["failure detection + PGO + fusion"]["skipped"]
     assert (run_dir / "mesh.ply").read_bytes() != mesh_bytes
 
+    # Fourth run with other settings, stopped during fusion: the third run's reconstruction stays whole (it was
+    # deleted before the new one started)
+    third_summary = (run_dir / "reconstruction/summary.json").read_text()
+    third_mesh = (run_dir / "reconstruction/mesh.ply").read_bytes()
+
+    def stopped(*a, **k):
+        raise KeyboardInterrupt("stopped during fusion")
+
+    monkeypatch.setattr(R.pipeline, "fuse_sequence", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        R.run(recon_cfg(run_dir, f"input={video}", f"intrinsics={camera}", f"ckpt={tiny_ckpt}",
+                        "sfm.allow_partial=true", "fusion.mask_erode_px=4", "fusion.max_std_ratio=4"))
+    assert (run_dir / "reconstruction/summary.json").read_text() == third_summary
+    assert (run_dir / "reconstruction/mesh.ply").read_bytes() == third_mesh
+    assert not [p.name for p in run_dir.iterdir() if p.name.startswith(".reconstruction")]
+
 
 def test_depth_stamp_follows_the_sfm_model(tmp_path):
     """Depth maps are scaled to the SfM's sparse points: an SfM made again (its run dir deleted) must not
