@@ -33,8 +33,14 @@ def main(argv: list[str]) -> None:
             overrides.append(a)
     rows, t0 = [], time.perf_counter()
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        probe = compose(config_name="train", overrides=overrides)
+        table_dir = Path(probe.paths.output_root) / "benchmarks" / "paper_table"
+        # a run of some folds keeps the other folds' rows of the table (held-out patient = fold)
+        kept = [r for r in ablation.read_table(table_dir / "results.csv") if r["patient"] not in folds]
+        if kept:
+            print(f"keeping the rows of held-out patient(s) {sorted({r['patient'] for r in kept})} from "
+                  f"{table_dir / 'results.csv'}", flush=True)
         for fold in folds:
-            probe = compose(config_name="train", overrides=overrides)
             fold_dir = Path(probe.paths.output_root) / "train" / f"fold={fold}"
             cfg = compose(config_name="train", overrides=[*overrides, f"fold={fold}", f"paths.run_dir='{fold_dir}'"])
             t = time.perf_counter()
@@ -42,7 +48,8 @@ def main(argv: list[str]) -> None:
             print(f"fold {fold}: trained in {time.perf_counter() - t:.0f} s", flush=True)
             out = Path(cfg.paths.output_root) / "benchmarks" / "paper_table" / f"fold={fold}"
             rows += ablation.run_fold(cfg, fold_dir, out)
-            csv_path, md_path = ablation.write_table(rows, out.parent)
+            table = sorted(kept + rows, key=lambda r: r["patient"])  # stable: each patient's variants in order
+            csv_path, md_path = ablation.write_table(table, out.parent)
     print(md_path.read_text())
     print(f"written {md_path} and {csv_path} in {time.perf_counter() - t0:.0f} s")
 

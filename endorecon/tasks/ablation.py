@@ -333,6 +333,25 @@ def run_adapted(cfg: DictConfig, module, data_root: Path, sfm_seq, out_dir: Path
     return _row(sfm_seq, "adapted", ev, dm["depth_evaluation"]["abs_rel"])
 
 
+def read_table(csv_path: Path) -> list[dict]:
+    """The rows of a ``results.csv`` that :func:`write_table` wrote (numbers as floats; none if it is missing)."""
+    csv_path = Path(csv_path)
+    if not csv_path.is_file():
+        return []
+    rows = []
+    with open(csv_path, newline="") as f:
+        for r in csv.DictReader(f):
+            try:
+                row = {"patient": int(r["patient"]), "sequence": r.get("sequence") or None, "variant": r["variant"]}
+                row.update({k: float(r[k]) if r.get(k) else None for k in COLUMNS})
+            except (KeyError, ValueError) as e:
+                raise InputError(f"not a results table written by this version ({e})", csv_path,
+                                 "delete it, or run every fold again") from e
+            row["refused"] = r["refused"].split("; ") if r.get("refused") else []
+            rows.append(row)
+    return rows
+
+
 def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     """``results.csv`` and ``results.md``: one row per (patient, variant), then the mean over patients."""
     out_dir = Path(out_dir)
@@ -343,7 +362,7 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
         v = r.get(f)
         if f == "refused":  # the settings that differed from the training run's
             return "; ".join(v) if v else ""
-        return "" if v is None else (f"{v:.4f}" if isinstance(v, float) else str(v))
+        return "" if v is None else (repr(float(v)) if isinstance(v, float) else str(v))  # read back exactly by read_table
 
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")  # quotes what needs it (commas in settings or names)

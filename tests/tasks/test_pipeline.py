@@ -368,3 +368,39 @@ def test_file_lock_makes_jobs_take_turns(tmp_path):
         seen = log.read_text()
     other.wait(timeout=30)
     assert seen == "held\nreleased\n"
+
+
+def test_results_table_of_some_folds_keeps_the_other_folds_rows(tmp_path, monkeypatch):
+    """benchmarks/paper_table.py folds=1 replaced a four-fold table with a one-fold one; it now keeps the rows of
+    the other held-out patients, read back exactly as written."""
+    import importlib.util
+
+    from endorecon.tasks import ablation
+    from endorecon.tasks import train as train_task
+
+    def row(patient, variant, mean, refused=()):
+        return {"patient": patient, "sequence": f"patient_{patient:02d}/seq_00", "variant": variant,
+                **{k: None for k in ablation.COLUMNS}, "mean_mm": mean, "median_mm": mean / 2, "p95_mm": mean,
+                "max_mm": 2 * mean, "frac_below_1mm": 0.5, "abs_rel": 0.123456, "refused": list(refused)}
+
+    table_dir = tmp_path / "out" / "benchmarks" / "paper_table"
+    first = [row(p, v, 0.1 * p + 0.01 * i + 0.0001234) for p in (0, 1, 2) for i, v in enumerate(("full", "adapted"))]
+    first[1]["refused"] = ["model.x: 1 -> 2", "loss.y: a -> b"]
+    ablation.write_table(first, table_dir)
+    assert ablation.read_table(table_dir / "results.csv") == first
+    md_before = (table_dir / "results.md").read_text()
+
+    monkeypatch.setattr(train_task, "run", lambda cfg: None)
+    monkeypatch.setattr(ablation, "run_fold", lambda cfg, fold_dir, out: [row(1, "full", 9.0), row(1, "adapted", 8.0)])
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    spec = importlib.util.spec_from_file_location("paper_table", root / "benchmarks" / "paper_table.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    mod.main(["folds=1", f"paths.output_root={tmp_path / 'out'}"])
+    after = ablation.read_table(table_dir / "results.csv")
+    assert [(r["patient"], r["variant"]) for r in after] == [(r["patient"], r["variant"]) for r in first]
+    assert [r for r in after if r["patient"] != 1] == [r for r in first if r["patient"] != 1]
+    assert [r["mean_mm"] for r in after if r["patient"] == 1] == [9.0, 8.0]
+    assert md_before.splitlines()[2] == (table_dir / "results.md").read_text().splitlines()[2]  # patient 0 as before
