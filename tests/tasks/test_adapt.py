@@ -172,3 +172,22 @@ def test_corrupt_adapted_checkpoint_is_adapted_again(prepared, tmp_path):
     ckpt2, info, skipped = adapt.run(FAST, m, DATA, prepared, out, "s")
     assert not skipped and info["steps"] == FAST["epochs"] * FAST["batches_per_epoch"]
     assert all(torch.equal(torch.load(ckpt2, weights_only=False)["state_dict"][k], v) for k, v in m.state_dict().items())
+
+
+def test_a_stop_between_the_checkpoint_and_its_record_is_not_taken_as_done(prepared, tmp_path, monkeypatch):
+    """The adapted checkpoint is replaced before adapt.json: a stop in between left the old record beside the
+    new weights, and a later run with the old options loaded weights adapted with other ones."""
+    out = tmp_path / "adaptation"
+    adapt.run(FAST, module(), DATA, prepared, out, "stamp-1")
+
+    def stop(*a, **k):
+        raise KeyboardInterrupt("stopped")
+
+    monkeypatch.setattr(adapt, "atomic_write_text", stop)
+    with pytest.raises(KeyboardInterrupt):
+        adapt.run(FAST, module(), DATA, prepared, out, "stamp-2")  # new weights written, record not
+    monkeypatch.undo()
+    ran = []
+    real = adapt.adapt_module
+    monkeypatch.setattr(adapt, "adapt_module", lambda *a, **k: ran.append(1) or real(*a, **k))
+    assert not adapt.run(FAST, module(), DATA, prepared, out, "stamp-1")[2] and ran == [1]
