@@ -9,6 +9,7 @@ Options (key=value):
               else estimated from the frames (pixels that are ever brighter than black)
     name      sequence name (default: the input folder's name)
     any other key overrides conf/sfm/default.yaml, e.g. max_size=640 allow_partial=true clean.visibility_window=3
+              (a leading "sfm." is accepted: sfm.allow_partial=true, as train.py / reconstruct.py spell it)
 """
 
 from __future__ import annotations
@@ -28,13 +29,16 @@ OWN_KEYS = {"input", "out", "fx", "fy", "cx", "cy", "camera", "mask", "name"}
 def parse_args(argv: list[str]) -> tuple[dict, list[str]]:
     own, overrides = {}, []
     for a in argv:
+        if a in ("-h", "--help", "help"):
+            print(__doc__.strip())
+            raise SystemExit(0)
         if "=" not in a:
             raise InputError(f"argument {a!r} is not key=value", fix=__doc__.strip().splitlines()[0])
         k, v = a.split("=", 1)
         if k in OWN_KEYS:
             own[k] = v
         else:
-            overrides.append(a)
+            overrides.append(a[len("sfm."):] if k.startswith("sfm.") else a)
     for k in ("input", "out"):
         if k not in own:
             raise InputError(f"missing {k}=", fix=__doc__.strip().splitlines()[0])
@@ -108,7 +112,14 @@ def main(argv: list[str] | None = None) -> int:
         own, overrides = parse_args(sys.argv[1:] if argv is None else argv)
         if not CONF.is_file():
             raise InputError("SfM config not found", CONF, "run from a checkout of endorecon")
-        cfg = OmegaConf.merge(OmegaConf.load(CONF), OmegaConf.from_dotlist(overrides))
+        base = OmegaConf.load(CONF)
+        OmegaConf.set_struct(base, True)  # a misspelt key is refused, not ignored
+        try:
+            cfg = OmegaConf.merge(base, OmegaConf.from_dotlist(overrides))
+        except Exception as e:  # omegaconf's ConfigKeyError / ValidationError
+            known = ", ".join(sorted(OWN_KEYS | set(base.keys())))
+            raise InputError(f"unknown or invalid SfM option ({str(e).splitlines()[0]})", CONF,
+                             f"use one of: {known} (or clean.<key>)") from e
         from endorecon.sfm.stage import load_result, run
 
         seq = build_sequence(own)

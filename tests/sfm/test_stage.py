@@ -260,3 +260,26 @@ def test_reused_attempt_counts_second_models_with_the_current_min_model_size(tmp
     assert not res["passed"] and res["models"] == 2
     res = stage._run_attempt(None, names, {**cfg, "min_model_size": 10}, 0, tmp_path)
     assert res["passed"] and res["models"] == 1, res["problems"]
+
+
+def test_cli_refuses_unknown_options_and_takes_the_sfm_prefix(tmp_path, capsys, monkeypatch):
+    """A misspelt option ran SfM with the default silently, and the SfM error's own hint
+    (sfm.allow_partial=true, as train.py spells it) was ignored by the CLI."""
+    empty = tmp_path / "frames"
+    empty.mkdir()
+    assert main([f"input={empty}", f"out={tmp_path / 'o'}", "max_sise=640"]) == 2
+    err = capsys.readouterr().err
+    assert "max_sise" in err and "max_size" in err
+    seen = {}
+
+    def fake_run(cfg, seq, out):
+        seen.update(allow_partial=cfg.allow_partial, min_track_length=cfg.clean.min_track_length)
+        raise InputError("stop here")
+
+    monkeypatch.setattr(stage, "run", fake_run)
+    monkeypatch.setattr("endorecon.sfm.__main__.build_sequence", lambda own: None)
+    assert main([f"input={empty}", f"out={tmp_path / 'o'}", "sfm.allow_partial=true", "clean.min_track_length=4"]) == 2
+    assert seen == {"allow_partial": True, "min_track_length": 4}
+    with pytest.raises(SystemExit) as e:
+        main(["--help"])
+    assert e.value.code == 0 and "input=" in capsys.readouterr().out
