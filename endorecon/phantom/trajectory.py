@@ -192,8 +192,9 @@ def estimate_centreline(renderer, voxel_mm: float = 1.0, min_clearance_mm: float
     ok = inside & (clear >= min_clearance_mm)
     if ok.sum() < 10:
         raise InputError(
-            "no interior space with enough clearance for an endoscope in this mesh",
-            fix="the mesh must be a closed cavity wall in mm (e.g. ASR.ply); or lower min_clearance_mm",
+            f"no interior space with enough clearance for an endoscope in this mesh (under 10 voxels of "
+            f"{voxel_mm} mm at least {min_clearance_mm} mm from the wall)",
+            fix="the mesh must be a closed cavity wall in mm (e.g. ASR.ply), a few mm wide or more",
         )
     idx = -np.ones(len(pts), np.int64)
     idx[ok] = np.arange(ok.sum())

@@ -41,7 +41,10 @@ class DatasetInfo:
 
 def load_sequences(cfg: DictConfig) -> DatasetInfo:
     """The dataset named by ``cfg.data`` (``data=phantom`` generates it on first use)."""
-    name = cfg.data.name
+    name = cfg.data.get("name")
+    if name is None:  # data=default: the training keys alone, which data=phantom builds on
+        raise InputError("data=default holds only the training keys (resolution, batches, augmentation), no dataset",
+                         fix="use data=phantom (the default) and override its keys, e.g. data.height=256")
     if name == "phantom":
         from endorecon.data.dataset import load_dataset, patients_with_ct
         from endorecon.phantom import ensure_dataset

@@ -584,3 +584,14 @@ def test_end_stage_refines_again_sequences_other_weights_made(tmp_path, monkeypa
     assert refined == ["patient_01/seq_00"]
     metrics = json.loads((it_dir / "metrics.json").read_text())
     assert {s["made_by"] for s in metrics["sequences"]} == {pipeline.weights_digest(net)}
+
+
+def test_data_default_is_a_clear_error(tmp_path):
+    """`--help` offers data=default (the training keys data=phantom builds on); choosing it crashed with an
+    omegaconf traceback."""
+    from endorecon.tasks import pipeline
+
+    cfg = _compose("train", ["data=default", f"paths.output_root={tmp_path}"])
+    with pytest.raises(InputError, match="data=default holds only the training keys") as e:
+        pipeline.load_sequences(cfg)
+    assert "data=phantom" in e.value.fix
