@@ -53,7 +53,10 @@ def _reduce(per_pixel: torch.Tensor, valid: torch.Tensor, reduction: str, min_va
 def gaussian_nll(
     x: torch.Tensor, mu: torch.Tensor, var: torch.Tensor, eps: float = 1e-8
 ) -> torch.Tensor:
-    """Element-wise 0.5·log(var + eps) + (x − μ)²/(2(var + eps)), same shape as the inputs."""
+    """Element-wise 0.5·log(var + eps) + (x − μ)²/(2(var + eps)); x, mu, var: one shape, the output's."""
+    if not (x.shape == mu.shape == var.shape):  # broadcasting would give a plausible loss of the wrong pixels
+        raise ValueError(f"x, mu and var must have one shape, got {tuple(x.shape)}, {tuple(mu.shape)}, "
+                         f"{tuple(var.shape)}")
     v = var + eps
     return 0.5 * torch.log(v) + (x - mu) ** 2 / (2 * v)
 
@@ -243,7 +246,10 @@ def flow_depth_derivative(
     Returns:
         (B, 2, H, W) pixels per depth unit.
     """
-    B, _, H, W = depth_i.shape
+    B, _, H, W = check_shape(depth_i, "depth_i", (None, 1, None, None))
+    check_shape(z_j, "z_j", (B, 1, H, W))
+    check_shape(K, "K", (B, 3, 3))
+    check_shape(cam_j_from_cam_i, "cam_j_from_cam_i", (B, 4, 4))
     rays = unproject(torch.ones_like(depth_i), K)  # (B, 3, H, W)
     R, t = cam_j_from_cam_i[:, :3, :3], cam_j_from_cam_i[:, :3, 3]
     a = torch.einsum("bij,bjhw->bihw", R, rays)

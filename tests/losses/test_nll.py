@@ -448,3 +448,18 @@ def test_flow_at_points_gradcheck():
     T = _pose(tx=0.3, ty=0.1, tz=0.2, angle=0.05).requires_grad_()
     fn = lambda a, t, c: sparse_flow_loss_points(a, uv, K, t, flow, c, ok, (H, W), flow_std_floor=1e-2)  # noqa: E731
     assert torch.autograd.gradcheck(fn, (X, T, fs))
+
+
+def test_gaussian_nll_and_flow_derivative_refuse_shapes_that_would_broadcast():
+    from endorecon.losses.nll import flow_depth_derivative, gaussian_nll
+
+    x = torch.zeros(2, 1, 4, 5)
+    with pytest.raises(ValueError, match="one shape"):
+        gaussian_nll(x, torch.zeros(2, 1, 1, 1), torch.ones_like(x))
+    assert gaussian_nll(x, x, torch.ones_like(x)).shape == x.shape
+    K = torch.eye(3).expand(2, 3, 3)
+    T = torch.eye(4).expand(2, 4, 4)
+    with pytest.raises(ValueError, match="z_j"):
+        flow_depth_derivative(x, K, T, torch.ones(2, 1, 4, 1))
+    with pytest.raises(ValueError, match="cam_j_from_cam_i"):
+        flow_depth_derivative(x, K, torch.eye(4)[None], torch.ones_like(x))
