@@ -104,17 +104,24 @@ def save_residual_heatmap(
 ) -> Path:
     """PNG of the registered mesh coloured by per-vertex residual (mm), ``n_views`` views, colour bar in mm.
 
-    vertex_residual_mm: (V,).  vmax_mm defaults to max(1.5, 99th percentile).
+    vertex_residual_mm: (V,).  vmax_mm defaults to max(1.5, 99th percentile); vertices above it are drawn in the
+    top colour, which the colour bar (an arrow) and the title (how many, up to what) say.
     """
+    v = np.asarray(vertex_residual_mm, dtype=np.float64)
     if vmax_mm is None:
-        vmax_mm = max(1.5, float(np.percentile(vertex_residual_mm, 99)))
+        vmax_mm = max(1.5, float(np.percentile(v, 99)))
+    above = v > vmax_mm
+    if above.any():
+        title += (f"\ncolour clipped at {vmax_mm:.2f} mm: {int(above.sum())} of {len(v)} vertices above, "
+                  f"up to {float(v.max()):.3f} mm")
     images = render_scalar_views(mesh, vertex_residual_mm, vmax_mm, n_views, width, height)
     fig, axes = plt.subplots(1, n_views, figsize=(3.6 * n_views + 0.8, 3.6 * height / width + 0.6), squeeze=False)
     for ax, img in zip(axes[0], images):
         ax.imshow(img)
         ax.set_axis_off()
     sm = plt.cm.ScalarMappable(cmap="turbo", norm=matplotlib.colors.Normalize(0, vmax_mm))
-    fig.colorbar(sm, ax=axes[0].tolist(), fraction=0.025, pad=0.02, label="point-to-surface distance [mm]")
+    fig.colorbar(sm, ax=axes[0].tolist(), fraction=0.025, pad=0.02, label="point-to-surface distance [mm]",
+                 extend="max" if above.any() else "neither")
     fig.suptitle(title)
     return _save(fig, path)
 

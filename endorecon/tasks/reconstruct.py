@@ -348,8 +348,12 @@ def run(cfg: DictConfig) -> Path:
 
     def timed(name: str, t0: float, skipped: bool = False) -> None:
         now = time.perf_counter() - t0
-        prev = old.get(name, {}).get("seconds") if skipped else None
-        stages[name] = dict(seconds=now if prev is None else prev, skipped=skipped, run_seconds=now)
+        # a skipped stage keeps the time it took when it ran (None: not recorded, not counted as ~0 s)
+        stages[name] = dict(seconds=old.get(name, {}).get("seconds") if skipped else now, skipped=skipped,
+                            run_seconds=now)
+        # written after every stage, so that a run stopped later still leaves the times of what it finished
+        atomic_write_text(out / "timings.json", json.dumps(dict(stages={**old, **stages}, partial=True), indent=2)
+                          + "\n")
 
     t0 = time.perf_counter()
     decoded_before = (out / "frames" / "decode.json").is_file()
@@ -483,22 +487,29 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         log.warning("mesh preview failed: %s", e)
     stages["report"] = dict(seconds=time.perf_counter() - t0, skipped=False, run_seconds=time.perf_counter() - t0)
     sub = summary.get("times", {})
-    total = sum(s["seconds"] for s in stages.values())
+    total = sum(s["seconds"] for s in stages.values() if s["seconds"] is not None)
     now = sum(s["run_seconds"] for s in stages.values())
     rows = []
+    failure_off = cfg is not None and not (cfg.get("failure") or {}).get("enabled", True)
     for name, s in stages.items():
         note = "done earlier (skipped)" if s["skipped"] else ""
+        if s["seconds"] is None:
+            rows.append(f"| {name} | n/a | done earlier (skipped), its time was not recorded: not in the total |")
+            continue
         rows.append(f"| {name} | {s['seconds']:.1f} | {note} |")
         if name.startswith("failure"):
             labels = dict(fusion_s="fusion + simulated depth", failure_s="failure detection", pgo_s="dense PGO",
                           resfm_s="SfM rerun of flagged ranges", fusion2_s="fusion again + mesh")
-            rows += [f"| &nbsp;&nbsp;{labels.get(k, k)} | {v:.1f} | |" for k, v in sub.items()]
+            off = {"failure_s", "resfm_s"} if failure_off else set()  # metrics computed, nothing flagged
+            rows += [f"| &nbsp;&nbsp;{labels.get(k, k)} | {v:.1f} | {'off: not acted on' if k in off else ''} |"
+                     for k, v in sub.items()]
     mesh_info = _mesh_info(out / "mesh.ply")
     lines = [
         f"# Reconstruction of {seq.name}",
         "",
         f"- frames: {len(seq)}, registered by SfM: {summary['registered']}, fused: {summary['fused']}",
-        f"- flagged by failure detection: {summary['n_flagged']} {summary['flagged']}"
+        ("- failure detection: off (failure.enabled=false)" if failure_off else
+         f"- flagged by failure detection: {summary['n_flagged']} {summary['flagged']}")
         + (f"; left out of fusion with their neighbours: {summary['excluded']}" if summary.get("excluded") else "")
         + ("; **every frame was flagged, so all registered frames were fused** (check the failure thresholds "
            "and `reconstruction/failures.csv`)" if summary.get("all_flagged_fused") else ""),

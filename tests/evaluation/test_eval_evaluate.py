@@ -264,3 +264,25 @@ def test_heat_map_views_show_the_whole_of_a_long_mesh():
         drawn = (img < 0.99).any(axis=2)
         assert drawn.any()
         assert not drawn[0].any() and not drawn[-1].any() and not drawn[:, 0].any() and not drawn[:, -1].any()
+
+
+def test_heat_map_says_when_its_colour_scale_clips(tmp_path, monkeypatch):
+    """Residuals above the colour bar's top were drawn in its top colour without a word: the worst patch of a
+    mesh looked like 1.5 mm when it was 3 mm."""
+    import matplotlib.figure
+
+    from endorecon.evaluation.plots import save_residual_heatmap
+
+    seen = {}
+    real_title, real_bar = matplotlib.figure.Figure.suptitle, matplotlib.figure.Figure.colorbar
+    monkeypatch.setattr(matplotlib.figure.Figure, "suptitle",
+                        lambda self, t, **k: seen.update(title=t) or real_title(self, t, **k))
+    monkeypatch.setattr(matplotlib.figure.Figure, "colorbar",
+                        lambda self, *a, **k: seen.update(extend=k.get("extend")) or real_bar(self, *a, **k))
+    sphere = o3d.geometry.TriangleMesh.create_sphere(5.0, 10)
+    res = np.full(len(sphere.vertices), 0.2)
+    res[:7] = 3.0
+    save_residual_heatmap(sphere, res, tmp_path / "h.png", vmax_mm=1.5, n_views=1, title="m")
+    assert seen["extend"] == "max" and "clipped at 1.50 mm: 7 of" in seen["title"] and "up to 3.000 mm" in seen["title"]
+    save_residual_heatmap(sphere, np.full(len(sphere.vertices), 0.2), tmp_path / "h2.png", n_views=1, title="m")
+    assert seen["extend"] == "neither" and seen["title"] == "m"

@@ -416,6 +416,9 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     assert (run_dir / "reconstruction/summary.json").read_text() == third_summary
     assert (run_dir / "reconstruction/mesh.ply").read_bytes() == third_mesh
     assert not [p.name for p in run_dir.iterdir() if p.name.startswith(".reconstruction")]
+    # the stages it finished are timed on disk (a stage skipped on the next run keeps its real cost)
+    partial = json.loads((run_dir / "timings.json").read_text())
+    assert partial["partial"] and partial["stages"]["sfm"]["seconds"] == pytest.approx(first["sfm"]["seconds"])
 
 
 def test_depth_stamp_follows_the_sfm_model(tmp_path):
@@ -492,3 +495,31 @@ def test_report_lines_of_a_plain_fusion_mesh(tmp_path):
     write_mesh_ply(tmp_path / "adaptive.ply", box)
     assert not _mesh_has_std(tmp_path / "plain.ply") and _mesh_has_std(tmp_path / "adaptive.ply")
     assert "no std" in _uncertain_line(None, "plain") and "its std in the mesh" in _uncertain_line(None, "adaptive")
+
+
+def test_report_of_a_run_without_failure_detection_and_an_unrecorded_skipped_stage(tmp_path, monkeypatch):
+    """With failure.enabled=false the report said "flagged by failure detection: 0 []", as if it had run; a
+    stage skipped after an interrupted run (no timings.json yet) was timed as ~0 s and counted in the total."""
+    import types
+
+    from omegaconf import OmegaConf
+
+    from endorecon.tasks import reconstruct as R
+
+    monkeypatch.setattr(R, "save_depth_std_png", lambda *a, **k: None)
+    class Seq(types.SimpleNamespace):
+        def __len__(self):
+            return 60
+
+    seq = Seq(name="v", width=8, height=8, native_window=None, intrinsics=None, cam_from_world=None, units="sfm")
+    summary = dict(registered=60, fused=60, flagged=[], n_flagged=0, excluded=[], all_flagged_fused=False, pgo={},
+                   times={"fusion_s": 1.2, "failure_s": 0.1, "resfm_s": 0.0, "pgo_s": 0.0, "fusion2_s": 1.5})
+    stages = {"sfm": dict(seconds=None, skipped=True, run_seconds=0.01),
+              "failure detection + PGO + fusion": dict(seconds=2.8, skipped=False, run_seconds=2.8)}
+    cfg = OmegaConf.create({"failure": {"enabled": False}, "fusion": {"name": "adaptive"}})
+    report = R.write_report(tmp_path, seq, summary, None, None, None, stages, "ck", cfg, None).read_text()
+    assert "failure detection: off (failure.enabled=false)" in report and "flagged by failure" not in report
+    assert "| sfm | n/a |" in report and "| **total** | **" in report
+    total = float(report.split("| **total** | **")[1].split("**")[0])
+    assert total == pytest.approx(2.8 + stages["report"]["seconds"], abs=0.06)
+    assert "off: not acted on" in report
