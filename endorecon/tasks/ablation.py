@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import math
 import io
 import json
 import logging
@@ -352,6 +353,14 @@ def read_table(csv_path: Path) -> list[dict]:
     return rows
 
 
+def percent_floor(fraction: float | None) -> str:
+    """A fraction as a percentage rounded down to 0.1 %: 100 % only when every point is under the bound (0.9952
+    read "100%" beside a maximum over it)."""
+    if fraction is None:
+        return ""
+    return f"{math.floor(1000 * float(fraction) + 1e-9) / 10:.1f}%"
+
+
 def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
     """``results.csv`` and ``results.md``: one row per (patient, variant), then the mean over patients."""
     out_dir = Path(out_dir)
@@ -382,9 +391,9 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
         who = f"| {r['patient']} | " + (f"{r.get('sequence') or ''} | " if several else "")
         if r["mean_mm"] is None:
             return who + "{} | n/a | n/a | n/a | n/a | n/a | n/a | {} | |".format(r["variant"], ar)
-        return who + "{} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {:.0%} | {} | {} | {} |".format(
+        return who + "{} | {:.3f} | {:.3f} | {:.3f} | {:.3f} | {} | {} | {} | {} |".format(
             r["variant"] + ("*" if r.get("refused") else ""), r["mean_mm"], r["median_mm"], r["p95_mm"],
-            r["max_mm"], r["frac_below_1mm"], cov, ar, rho)
+            r["max_mm"], percent_floor(r["frac_below_1mm"]), cov, ar, rho)
 
     md += [fmt(r) for r in rows]
     refused = sorted({d for r in rows for d in (r.get("refused") or [])})

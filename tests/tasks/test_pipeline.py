@@ -263,6 +263,9 @@ def test_results_table_means_over_patients_and_quotes_the_csv(tmp_path):
     md = md_path.read_text()
     assert "| **mean** |  | full | 2.500 |" in md  # (1 + 4) / 2, not (1 + 1 + 4) / 3
     assert "| 1 | p1/a,b | full | 1.000 |" in md  # two videos of patient 1: a sequence column
+    rows[0]["frac_below_1mm"] = 0.9952  # rounded down: 100 % only when every point is under 1 mm
+    md = write_table(rows, tmp_path)[1].read_text()
+    assert "| 99.5% |" in md and "| 100.0% |" in md and "| 100% |" not in md
     got = list(csv.DictReader(csv_path.open()))
     assert [r["sequence"] for r in got] == ["p1/a,b", "p1/c", "p2/a"]
 
