@@ -59,18 +59,43 @@ def test_known_normal_offset(tmp_path):
     assert m["median_mm"] == pytest.approx(1.5, abs=2e-3) and m["frac_below_1mm"] == 0.0
 
 
+def _open_patch(size: float, n: int, z: float, hole: tuple | None = None) -> o3d.geometry.TriangleMesh:
+    """An open n x n grid of squares (two triangles each) over [5, 5 + size]² at height z, without the squares
+    whose centres fall in ``hole`` = (x0, x1, y0, y1)."""
+    g = np.linspace(0.0, size, n + 1)
+    xx, yy = np.meshgrid(g + 5.0, g + 5.0)
+    v = np.c_[xx.ravel(), yy.ravel(), np.full(xx.size, z)]
+    tris = []
+    for i in range(n):
+        for j in range(n):
+            a, b, c, d = i * (n + 1) + j, i * (n + 1) + j + 1, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1
+            cx, cy = v[[a, b, c, d], 0].mean(), v[[a, b, c, d], 1].mean()
+            if hole and hole[0] < cx < hole[1] and hole[2] < cy < hole[3]:
+                continue
+            tris += [[a, b, d], [a, d, c]]
+    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(np.array(tris)))
+
+
 def test_coverage_of_a_patch_over_a_cube():
-    """The CT area a reconstruction covers, analytically: a 10x10 mm patch 0.5 mm above a 20 mm cube's top
-    face reaches (within 1 mm) the face under it grown by sqrt(1 - 0.5²) mm: 100 + 40 r + π r² mm²."""
+    """The CT area a reconstruction covers, analytically: an open 10x10 mm patch 0.5 mm above a 20 mm cube's top
+    face covers the face under it, 100 mm² (not the 1 mm band around it: those CT points' closest point is the
+    patch's border); a 2x2 mm hole in it uncovers 4 mm² (by distance alone it counted as covered)."""
     from endorecon.evaluation.evaluate import coverage
 
     cube = o3d.geometry.TriangleMesh.create_box(20.0, 20.0, 20.0)
-    patch = o3d.geometry.TriangleMesh.create_box(10.0, 10.0, 1e-3)
-    patch.translate([5.0, 5.0, 20.5])
+    patch = _open_patch(10.0, 20, 20.5)
     c = coverage(patch, cube, n_points=200000, seed=1)
+    assert c["ct_area_mm2"] == pytest.approx(2400.0) and c["area_mm2"] == pytest.approx(100.0, rel=1e-6)
+    assert c["ct_covered_mm2"] == pytest.approx(100.0, abs=2.5)
+    holed = coverage(_open_patch(10.0, 20, 20.5, hole=(9.0, 11.0, 9.0, 11.0)), cube, n_points=200000, seed=1)
+    assert holed["area_mm2"] == pytest.approx(96.0, rel=1e-6)
+    assert holed["ct_covered_mm2"] == pytest.approx(96.0, abs=2.5)
+    # a closed surface has no border: a thin box covers the band within 1 mm, 100 + 40 r + π r², r = sqrt(1 - 0.5²)
+    box = o3d.geometry.TriangleMesh.create_box(10.0, 10.0, 1e-3)
+    box.translate([5.0, 5.0, 20.5])
     r = np.sqrt(1 - 0.25)
-    assert c["ct_area_mm2"] == pytest.approx(2400.0) and c["area_mm2"] == pytest.approx(200.0, rel=1e-3)
-    assert c["ct_covered_mm2"] == pytest.approx(100 + 40 * r + np.pi * r**2, abs=5.0)
+    assert coverage(box, cube, n_points=200000, seed=1)["ct_covered_mm2"] == pytest.approx(100 + 40 * r + np.pi * r**2,
+                                                                                            abs=5.0)
     patch.translate([0.0, 0.0, 1.0])  # 1.5 mm above: covers nothing
     assert coverage(patch, cube, n_points=20000)["ct_covered_mm2"] == 0.0
 
