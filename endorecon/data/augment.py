@@ -266,12 +266,9 @@ class PairSample:
 def apply_geometric(sample: PairSample, tf: GeometricTransform) -> PairSample:
     """The pair seen through the transformed camera (both frames alike)."""
     has_sim = sample.sim_depth_i is not None
-    # One warp per interpolation mode: images bilinear; masks, validity and depth nearest (no blending).
+    # images bilinear; masks nearest (no blending)
     img = tf.warp(torch.cat([sample.image_i, sample.image_j]).float(), "bilinear")
-    near = [sample.mask_i, sample.mask_j]
-    if has_sim:
-        near += [sample.sim_valid_i, sample.sim_valid_j, sample.sim_depth_i, sample.sim_depth_j]
-    near = tf.warp(torch.cat([x.float() for x in near]), "nearest")
+    near = tf.warp(torch.cat([sample.mask_i.float(), sample.mask_j.float()]), "nearest")
     out = dataclasses.replace(
         sample,
         image_i=img[:3],
@@ -284,10 +281,19 @@ def apply_geometric(sample: PairSample, tf: GeometricTransform) -> PairSample:
         uv_j=tf.apply_uv(sample.uv_j),
     )
     if has_sim:
-        vi, vj = near[2:3] > 0.5, near[3:4] > 0.5
-        out.sim_valid_i, out.sim_valid_j = vi, vj
-        out.sim_depth_i = torch.where(vi, near[4:5], torch.zeros_like(near[4:5]))
-        out.sim_depth_j = torch.where(vj, near[5:6], torch.zeros_like(near[5:6]))
+        # The simulated depth (a label): bilinear over valid pixels only, kept where (almost) all the weight is
+        # valid and renormalised by it, as geometry.warp_depth samples depth.  Nearest put each rotated pixel's
+        # label on a surface point up to 0.7 px away (p95 ~0.3 mm on the phantom); z itself is unchanged by the
+        # roll.  Identity and flip are exact either way.
+        vs = [sample.sim_valid_i.float(), sample.sim_valid_j.float()]
+        ds = [torch.where(v > 0.5, d, torch.zeros_like(d)) for v, d in zip(vs, (sample.sim_depth_i, sample.sim_depth_j))]
+        w = tf.warp(torch.cat([*vs, *ds]), "bilinear")
+        for k, name in enumerate(("i", "j")):
+            support, depth = w[k:k + 1], w[2 + k:3 + k]
+            ok = support > 1.0 - 1e-3
+            setattr(out, f"sim_valid_{name}", ok)
+            setattr(out, f"sim_depth_{name}",
+                    torch.where(ok, depth / torch.where(ok, support, torch.ones_like(support)), torch.zeros_like(depth)))
     return out
 
 

@@ -173,7 +173,7 @@ def test_augment_then_unaugment_gives_same_sparse_depth():
         np.testing.assert_allclose(back["K"].numpy(), K, atol=1e-5)
 
 
-def test_sim_depth_is_moved_with_nearest_and_keeps_values():
+def test_sim_depth_is_moved_exactly_by_a_flip_and_interpolated_by_a_roll():
     s = sample_from_points(np.array([[0.0, 0.0, 10.0]]))
     depth = torch.rand(1, H, W) + 5.0
     valid = torch.rand(1, H, W) > 0.3
@@ -183,10 +183,27 @@ def test_sim_depth_is_moved_with_nearest_and_keeps_values():
     out = apply_geometric(s, tf)
     assert torch.equal(out.sim_depth_i, torch.flip(depth * valid, dims=[-1]))
     assert torch.equal(out.sim_valid_i, torch.flip(valid, dims=[-1]))
-    rot_out = apply_geometric(s, rotation_transform(K, math.radians(7)))
-    vals = set(np.round((depth * valid).flatten().numpy(), 6))
-    assert set(np.round(rot_out.sim_depth_i.flatten().numpy(), 6)) <= vals | {0.0}  # no blending
-    assert not (rot_out.sim_valid_i & (rot_out.sim_depth_i == 0)).any()
+    # A roll: each output pixel u' takes the label at A⁻¹u', interpolated (exact for a label linear in u, v);
+    # nearest took the label of a pixel up to 0.7 px away.  Pixels whose sample touches an invalid one stay out.
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    linear = (5.0 + 0.05 * u + 0.08 * v)[None]
+    holes = torch.ones_like(valid)
+    holes[..., 5:9, 7:12] = False
+    s.sim_depth_i, s.sim_valid_i = linear * holes, holes
+    s.sim_depth_j, s.sim_valid_j = linear.clone(), torch.ones_like(valid)
+    tf = rotation_transform(K, math.radians(7))
+    rot = apply_geometric(s, tf)
+    A_inv = np.linalg.inv(tf.A)
+    src = np.stack([u.numpy().ravel(), v.numpy().ravel(), np.ones(H * W)]) .T @ A_inv.T
+    expect = torch.from_numpy(5.0 + 0.05 * src[:, 0] + 0.08 * src[:, 1]).float().view(1, H, W)
+    for d, ok in ((rot.sim_depth_i, rot.sim_valid_i), (rot.sim_depth_j, rot.sim_valid_j)):
+        assert ok.float().mean() > 0.5
+        torch.testing.assert_close(d[ok], expect[ok], atol=2e-4, rtol=0)
+        assert (d[~ok] == 0).all()
+    # the hole's neighbourhood is left out in i but kept in j
+    inside = (src[:, 0] > 6.01) & (src[:, 0] < 11.99) & (src[:, 1] > 4.01) & (src[:, 1] < 8.99)
+    inside = torch.from_numpy(inside).view(1, H, W)
+    assert not rot.sim_valid_i[inside].any() and rot.sim_valid_j[inside].all()
 
 
 def test_photometric_range_determinism_and_switches():
