@@ -48,12 +48,13 @@ def crop_sequence(seq: Sequence, x0: int, y0: int, width: int, height: int) -> S
     K = crop_intrinsics(torch.from_numpy(seq.intrinsics)[None], x0, y0)[0].numpy()
     wx0, wy0, ww, wh = _window(seq)
     fx, fy = ww / seq.width, wh / seq.height  # native pixels per current pixel
-    window = (
-        int(round(wx0 + x0 * fx)),
-        int(round(wy0 + y0 * fy)),
-        int(round(width * fx)),
-        int(round(height * fy)),
-    )
+    exact = (wx0 + x0 * fx, wy0 + y0 * fy, width * fx, height * fy)
+    window = tuple(int(round(v)) for v in exact)
+    # the frames are cut at whole native pixels: a window that is not would put them up to half a pixel off K
+    if max(abs(a - b) for a, b in zip(exact, window)) > 1e-6:
+        raise InputError(f"crop window {(x0, y0, width, height)} of this resized sequence is the native window "
+                         f"{tuple(round(v, 3) for v in exact)}, not whole pixels",
+                         fix="crop the sequence first, then resize it (or crop at multiples of the resize ratio)")
     return seq.replace(
         intrinsics=K, height=height, width=width, mask=seq.mask[y0 : y0 + height, x0 : x0 + width], native_window=window
     )
@@ -62,6 +63,8 @@ def crop_sequence(seq: Sequence, x0: int, y0: int, width: int, height: int) -> S
 def downsample_and_crop_to_mask(seq: Sequence, factor: int = 4, multiple: int = 64) -> Sequence:
     """The original method's preprocessing: downsample by ``factor``, then crop the mask's bounding box to a
     multiple of ``multiple`` pixels (so that the network's strides divide the image)."""
-    small = resize_sequence(seq, seq.height // factor, seq.width // factor)
+    # sides cut to multiples of ``factor`` first, so that the crop below falls on whole native pixels
+    whole = crop_sequence(seq, 0, 0, seq.width // factor * factor, seq.height // factor * factor)
+    small = resize_sequence(whole, whole.height // factor, whole.width // factor)
     x0, y0, w, h = mask_bbox_crop(torch.from_numpy(small.mask), multiple)
     return crop_sequence(small, x0, y0, w, h)

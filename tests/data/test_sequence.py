@@ -133,12 +133,19 @@ def test_resize_and_crop_keep_points_on_their_pixels(tmp_path):
     assert np.array_equal(crop.load_frame(0), ref)
     with pytest.raises(InputError, match="outside"):
         crop_sequence(half, 20, 0, 16, 16)
+    # a resize by 3/4 then a crop at a third of a native pixel: the frames would be cut 1/3 px off K
+    three_q = resize_sequence(seq, H * 3 // 4, W * 3 // 4)
+    with pytest.raises(InputError, match="not whole pixels"):
+        crop_sequence(three_q, 1, 0, 6, 6)
+    assert crop_sequence(three_q, 3, 3, 6, 6).native_window == (4, 4, 8, 8)
 
 
 def test_original_method_preprocessing_crops_to_multiple_of_64(tmp_path):
     seq = load_sequence_folder(make_folder(tmp_path, n=1, h=540, w=960))
     small = downsample_and_crop_to_mask(seq, factor=2, multiple=64)
     assert small.height % 64 == 0 and small.width % 64 == 0
+    odd = load_sequence_folder(make_folder(tmp_path / "odd", n=1, h=541, w=963))  # sides not multiples of 2
+    assert downsample_and_crop_to_mask(odd, factor=2, multiple=64).height % 64 == 0
     assert small.load_frame(0).shape == (small.height, small.width, 3)
 
 
