@@ -201,3 +201,46 @@ def test_csv_roundtrip_and_stage(tmp_path, scene):
     mtime = out.stat().st_mtime_ns
     assert run({}, None, None, None, None, None, None, None, None, tmp_path / "it0") == out
     assert out.stat().st_mtime_ns == mtime
+
+# Tests that a mutation of the code survived before (a review ran single-point mutations of this package):
+# each fails under its mutation and passes on the code.
+
+
+def test_configured_thresholds_are_used_and_strict(scene):
+    sim = scene.render(scene.cam_from_world)
+    base = detect(scene, scene.depth, sim, scene.cam_from_world)
+    assert base.flagged_frames == []
+    low = detect(scene, scene.depth, sim, scene.cam_from_world, cfg={"thresholds": {"dense_simulation": -1e9}})
+    assert low.flagged_frames == [0, 5, 10, 15, 20] and all(r == "dense_simulation" for r in low.reasons)
+    v = float(base.metrics["dense_simulation"][2])
+    eq = detect(scene, scene.depth, sim, scene.cam_from_world, cfg={"thresholds": {"dense_simulation": v}})
+    assert not eq.exceeded["dense_simulation"][2]  # equal to the threshold: not over
+
+def test_nan_metric_does_not_flag(scene):
+    sim = scene.render(scene.cam_from_world)
+    sim[15] = 0.0
+    r = detect(scene, scene.depth, sim, scene.cam_from_world)
+    k = list(r.frames).index(15)
+    assert np.isnan(r.metrics["dense_simulation"][k])
+    assert r.flagged_frames == []
+
+def test_dense_metric_ignores_zero_sim_depth_even_if_marked_valid(scene):
+    sim = scene.render(scene.cam_from_world)
+    sim[10, :, :10] = 0.0
+    ref = detect_failures(scene.depth, 0.05 * scene.depth, sim, sim > 0, scene.K, scene.cam_from_world, scene.mask, flow_fn(scene), {})
+    allv = detect_failures(scene.depth, 0.05 * scene.depth, sim, torch.ones_like(sim, dtype=torch.bool), scene.K, scene.cam_from_world, scene.mask, flow_fn(scene), {})
+    np.testing.assert_allclose(allv.metrics["dense_simulation"], ref.metrics["dense_simulation"])
+
+def test_tracks_outside_the_mask_are_ignored(scene):
+    sim = scene.render(scene.cam_from_world)
+    def junk(i, j):
+        f, v = scene.sparse_flow_fn(i, j, noise_px=0.0)
+        f = torch.where(scene.mask, f, torch.full_like(f, 1e3))
+        return f, v | ~scene.mask
+    ref = detect(scene, scene.depth, sim, scene.cam_from_world, noise_px=0.0)
+    got = detect_failures(scene.depth, 0.05 * scene.depth, sim, sim > 0, scene.K, scene.cam_from_world, scene.mask, junk, {})
+    np.testing.assert_allclose(got.metrics["sparse_flow"], ref.metrics["sparse_flow"])
+
+def test_ranges_are_clipped_to_the_sequence_and_even_interval_exclusion():
+    assert _report([35], n=40).flagged_ranges(pad=10) == [(25, 39)]
+    assert _report([4], n=12, interval=4).excluded_frames() == [2, 3, 4, 5, 6]

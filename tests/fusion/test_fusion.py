@@ -896,3 +896,58 @@ def test_no_usable_depth_is_an_error_not_an_empty_mesh(tmp_path):
     with pytest.raises(InputError, match="depth_max_factor is set"):
         build_fusion({"name": "adaptive", "voxel_size": 0.1, "depth_max_factor": 2.0}, float("nan"))
     assert build_fusion({"name": "adaptive", "voxel_size": 0.1, "depth_max_factor": None}, None).depth_max == float("inf")
+
+# Tests that a mutation of the code survived before (a review ran single-point mutations of this package):
+# each fails under its mutation and passes on the code.
+from endorecon.fusion import drop_small_components, pixel_band_blocks  # noqa: E402
+
+
+def _plane_vol(std, **kw):
+    T = np.eye(4)
+    d = np.full((H, W), 1.0, np.float32)
+    vol = AdaptiveTSDF(0.01, compile=False, **kw)
+    vol.integrate(d, np.full((H, W), std, np.float32), None, K, T)
+    return vol
+
+def _sample(vol, z):
+    return vol.sample_voxels(torch.tensor([[0.0, 0.0, z]]), ("tsdf", "weight"))
+
+def test_band_behind_surface_and_trunc_cap():
+    # trunc = clamp(3 * 0.02, 2 vox, 4 vox) = 0.04: the cap, not k sigma
+    vol = _plane_vol(0.02, trunc_min_voxels=2.0, trunc_max_voxels=4.0)
+    s = _sample(vol, 0.98)
+    assert float(s["tsdf"]) == pytest.approx(0.5, abs=1e-4)       # sdf 0.02 / trunc 0.04
+    assert torch.isnan(_sample(vol, 1.06)["tsdf"]).all()         # 1.5 trunc behind: never updated
+
+def test_band_width_follows_the_std():
+    # trunc = 3 * 0.05 = 0.15 (15 voxels, within [2, 24]); the allocated band must reach 0.12 in front
+    vol = _plane_vol(0.05, trunc_min_voxels=2.0, trunc_max_voxels=24.0)
+    s = _sample(vol, 0.88)
+    assert float(s["tsdf"]) == pytest.approx(0.8, abs=1e-3)
+
+def test_mesh_weight_threshold_two_needs_two_frames():
+    vol = _plane_vol(0.005, mesh_weight_threshold=2.0)
+    assert vol.extract_mesh().triangle.indices.shape[0] == 0
+
+def test_just_in_front_within_tau_is_on_not_through():
+    depth = torch.full((1, H, W), 2.0, dtype=torch.float64)
+    on, through = free_space_counts(torch.tensor([[0.0, 0.0, 1.85]], dtype=torch.float64), depth,
+                                    torch.as_tensor(K), torch.eye(4, dtype=torch.float64)[None], tau=0.1)
+    assert on.tolist() == [1] and through.tolist() == [0]
+
+def test_largest_piece_is_always_kept():
+    a, b = _grid_mesh(3), _grid_mesh(3)
+    pa = a.vertex.positions.numpy(); pb = pa + np.array([10, 0, 0], np.float32)
+    m = o3d.t.geometry.TriangleMesh()
+    m.vertex.positions = o3d.core.Tensor(np.concatenate([pa, pb]))
+    f = a.triangle.indices.numpy()
+    m.triangle.indices = o3d.core.Tensor(np.concatenate([f, f + len(pa)]))
+    out = drop_small_components(m, 0.9)  # both pieces under 90 %: the largest stays
+    assert out.triangle.indices.shape[0] == len(f)
+
+def test_band_walk_with_trunc_over_two_blocks():
+    T = np.eye(4)
+    d = torch.full((H, W), 1.0, dtype=torch.float64)
+    got = pixel_band_blocks(d, torch.from_numpy(K), torch.from_numpy(T), 0.3, 0.08).numpy()
+    zs = set(got[:, 2].tolist())
+    assert zs == set(range(int(np.floor(0.7 / 0.08)), int(np.floor(1.3 / 0.08)) + 1))

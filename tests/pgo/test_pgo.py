@@ -188,3 +188,66 @@ def test_stage_writes_poses_and_skips(tmp_path, scene):
     mtime = path.stat().st_mtime_ns
     assert run(cfg, names, None, None, None, None, None, None, tmp_path) == path
     assert path.stat().st_mtime_ns == mtime
+
+# Tests that a mutation of the code survived before (a review ran single-point mutations of this package):
+# each fails under its mutation and passes on the code.
+
+
+def _init(seed=2):
+    g = torch.Generator().manual_seed(seed)
+    xi = 0.01 * torch.randn(N, 6, generator=g, dtype=torch.float64); xi[0] = 0
+    return se3_exp(xi)
+
+def test_result_is_independent_of_the_depth_unit(scene):
+    T_init = _init() @ scene.cam_from_world
+    s = 50.0
+    ref = optimize(scene, T_init, iterations=5, noise_px=0.0)
+    Ts = T_init.clone(); Ts[:, :3, 3] *= s
+    d = (s * scene.depth).to(F)
+    got = optimize_poses(d, 0.05 * d, scene.K.to(F), Ts, scene.mask, lambda i, j: scene.sparse_flow_fn(i, j, noise_px=0.0), {"progress": False, "iterations": 5})
+    assert got.history == pytest.approx(ref.history, rel=1e-4)
+    torch.testing.assert_close(got.cam_from_world[:, :3, 3] / s, ref.cam_from_world[:, :3, 3], rtol=0, atol=1e-5)
+    torch.testing.assert_close(got.update_translation / s, ref.update_translation, rtol=1e-3, atol=1e-7)
+
+def test_weights_go_to_their_terms(scene):
+    T = _init() @ scene.cam_from_world
+    depth = scene.depth.to(F)
+    def run(fn, **cfg):
+        return optimize_poses(depth, 0.05 * depth, scene.K.to(F), T, scene.mask, fn, {"progress": False, "iterations": 0, **cfg}).loss_before
+    with_flow = lambda i, j: scene.sparse_flow_fn(i, j, noise_px=0.0)
+    no_flow = lambda i, j: None
+    assert run(no_flow, w_flow=1.0, w_consistency=0.0) == 0.0
+    assert run(with_flow, w_flow=0.0, w_consistency=1.0) == pytest.approx(run(no_flow, w_flow=0.0, w_consistency=1.0))
+
+def test_objective_is_the_mean_over_edges(scene):
+    T = _init() @ scene.cam_from_world
+    a = optimize(scene, T, iterations=0, neighbors=[5]).loss_before
+    b = optimize(scene, T, iterations=0, neighbors=[5, 5]).loss_before
+    assert b == pytest.approx(a, rel=1e-6)
+
+def test_edges_and_reported_updates(scene):
+    T = _init() @ scene.cam_from_world
+    res = optimize(scene, T, iterations=3)
+    fwd = {(i, i + o) for i in range(N) for o in (5, 6, 7, 8) if i + o < N}
+    assert set(res.edges) == fwd | {(j, i) for i, j in fwd}
+    dc = (camera_centers(res.cam_from_world) - camera_centers(T)).norm(dim=1)
+    torch.testing.assert_close(res.update_translation.to(dc.dtype), dc, rtol=1e-4, atol=1e-7)
+
+def test_exactly_min_flow_points_make_a_flow_term_and_mask_applies(scene):
+    T = scene.cam_from_world
+    def three(i, j):
+        f, v = scene.sparse_flow_fn(i, j, noise_px=0.0)
+        idx = torch.nonzero(v.flatten())[:3, 0]
+        v2 = torch.zeros_like(v).flatten(); v2[idx] = True
+        return f, v2.view_as(v)
+    depth = scene.depth.to(F)
+    lb = lambda m: optimize_poses(depth, 0.05 * depth, scene.K.to(F), T, scene.mask, three, {"progress": False, "iterations": 0, "w_consistency": 0.0, "min_flow_points": m}).loss_before
+    assert lb(3) != 0.0 and lb(4) == 0.0
+    # tracks outside the mask are not used
+    ref = optimize(scene, T, noise_px=0.0, iterations=0).loss_before
+    def junk(i, j):
+        f, v = scene.sparse_flow_fn(i, j, noise_px=0.0)
+        return torch.where(scene.mask, f, torch.full_like(f, 1e3)), v | ~scene.mask
+    depth = scene.depth.to(F)
+    got = optimize_poses(depth, 0.05 * depth, scene.K.to(F), T, scene.mask, junk, {"progress": False, "iterations": 0}).loss_before
+    assert got == pytest.approx(ref, rel=1e-6)
