@@ -216,9 +216,10 @@ def run(cfg_adapt, module, data_cfg, prepared, out_dir: Path, stamp: str) -> tup
         except (OSError, ValueError, KeyError, RuntimeError, EOFError, pickle.UnpicklingError) as e:  # corrupt output
             log.warning("unreadable adaptation output %s (%s): adapting again", out_dir, e)
     out_dir.mkdir(parents=True, exist_ok=True)
-    # the old record goes first: a stop between the two writes below must not leave it vouching for new weights
-    report.unlink(missing_ok=True)
     info = adapt_module(module, data_cfg, prepared, opts)
+    # the old record goes before the old weights do: a stop between the two writes below must not leave it
+    # vouching for the new weights (a stop during the adaptation leaves both as they were)
+    report.unlink(missing_ok=True)
     with atomic_path(ckpt) as tmp:
         torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
                     "adaptation": info}, tmp)
