@@ -59,3 +59,19 @@ def test_source_id_follows_the_frame_selection_and_the_files(tmp_path):
     first = sorted(frames.iterdir())[0]
     first.write_bytes(first.read_bytes() + b"\0")  # the same names, another file
     assert _source_id(frames, sel()) != before
+
+
+def test_given_intrinsics_win_over_the_folders_camera(tmp_path):
+    """intrinsics= is the user's correction of a folder's camera.json: it must be the K that is used."""
+    from endorecon.tasks.reconstruct import input_sequence
+
+    seq = _sequence_folder(tmp_path, (H, W))  # its camera.json: f 60, c (39.5, 31.5)
+    K = tmp_path / "K.txt"
+    K.write_text("70 70 40 32\n")
+    own = input_sequence(recon_cfg(tmp_path / "a", f"input={seq}"), tmp_path / "a").intrinsics
+    given = input_sequence(recon_cfg(tmp_path / "b", f"input={seq}", f"intrinsics={K}"), tmp_path / "b").intrinsics
+    np.testing.assert_allclose(own[0, 0], 60.0)
+    assert not np.allclose(given, own)
+    from endorecon.data.video import read_intrinsics
+
+    np.testing.assert_allclose(given, read_intrinsics(K, pixel_origin="corner"))
