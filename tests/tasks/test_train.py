@@ -595,3 +595,41 @@ def test_data_default_is_a_clear_error(tmp_path):
     with pytest.raises(InputError, match="data=default holds only the training keys") as e:
         pipeline.load_sequences(cfg)
     assert "data=phantom" in e.value.fix
+
+
+def test_end_stage_evaluates_the_held_out_sequence_again_after_an_interruption(tmp_path, monkeypatch):
+    """The held-out sequence is never taken from an earlier summary while bootstrap.evaluate is on: its depth
+    evaluation (metrics.json's depth_evaluation) is made from the network's depth each time."""
+    import types
+
+    import torch
+
+    from endorecon.callbacks.bootstrap import BootstrapCallback
+    from endorecon.tasks import pipeline
+
+    cfg = _compose("train", ["fold=1", "bootstrap.evaluate=true", f"paths.run_dir='{tmp_path}/fold=1'"])
+    it_dir = tmp_path / "fold=1" / "iteration=0"
+    inferred = []
+
+    def fake_refine(cfg, seq, cache, depth, std, colors, excluded, out_dir, made_by=None):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "failures.csv").write_text("frame,dense_simulation,sparse_flow,depth_consistency,flagged,reason\n")
+        for name in ("poses.txt", "mesh.ply"):
+            (out_dir / name).write_text("x")
+        summary = dict(sequence=seq.name, n_flagged=0, made_by=made_by)
+        (out_dir / "summary.json").write_text(json.dumps(summary))
+        return summary
+
+    monkeypatch.setattr(pipeline, "infer_depth", lambda module, seq, cache: inferred.append(seq.name) or (1, 2, 3))
+    monkeypatch.setattr(pipeline, "refine_sequence", fake_refine)
+    depth_eval = {"abs_rel": 0.1, "a1": 0.9, "std_error_spearman": 0.5}
+    monkeypatch.setattr(pipeline, "evaluate_depth_with_cap", lambda *a: (depth_eval, None))
+    monkeypatch.setattr(BootstrapCallback, "_evaluate", lambda self, seq, sdir: None)
+    preps = [types.SimpleNamespace(seq=types.SimpleNamespace(name=f"patient_0{p}/seq_00", patient=p), cache=None,
+                                   excluded=None) for p in (1, 2)]
+    trainer = types.SimpleNamespace(is_global_zero=True, callback_metrics={}, logger=None, global_step=0)
+    net = torch.nn.Linear(2, 2)
+    for _ in range(2):
+        BootstrapCallback(cfg, preps, it_dir, types.SimpleNamespace(root=tmp_path)).on_train_end(trainer, net)
+    assert inferred == ["patient_01/seq_00", "patient_02/seq_00", "patient_01/seq_00"]
+    assert json.loads((it_dir / "metrics.json").read_text())["depth_evaluation"] == depth_eval
