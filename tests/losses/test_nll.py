@@ -226,10 +226,12 @@ def _flow_case(B=1, tx=0.4, depth_value=4.0, sigma=0.2):
     return depth, std, K, T, flow, valid
 
 
-def test_flow_depth_derivative_matches_finite_differences():
+@pytest.mark.parametrize("skew", [0.0, 3.0])  # with skew: its s·∂y/∂d term in ∂u/∂d
+def test_flow_depth_derivative_matches_finite_differences(skew):
     g = torch.Generator().manual_seed(7)
     d = torch.rand(2, 1, H, W, generator=g, dtype=torch.float64) + 3
     K, T = _K(2), _pose(tx=0.3, ty=-0.2, tz=0.1, angle=0.1, B=2)
+    K[:, 0, 1] = skew
     _, z_j = flow_from_depth(d, K, T)
     jac = flow_depth_derivative(d, K, T, z_j)
     h = 1e-6
