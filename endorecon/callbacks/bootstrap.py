@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from endorecon.tasks import pipeline
-from endorecon.utils.io import atomic_path, atomic_write_text, read_json
+from endorecon.utils.io import atomic_path, atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -113,11 +113,8 @@ class BootstrapCallback(L.Callback):
             seq = prep.seq
             sdir = it_dir / "sequences" / pipeline._slug(seq.name)
             held_out = seq.patient == int(cfg.fold)
-            summary = None
-            if (sdir / "summary.json").is_file() and not (held_out and cfg.bootstrap.evaluate):
-                summary = read_json(sdir / "summary.json", f"delete {sdir} so that the sequence is refined again")
-                if summary.get("made_by") != made_by:
-                    summary = None
+            # the held-out sequence is always made again while evaluating: its depth evaluation needs the depth
+            summary = None if held_out and cfg.bootstrap.evaluate else pipeline.reusable_summary(sdir, made_by)
             if summary is None:
                 depth, std, colors = pipeline.infer_depth(pl_module, seq, prep.cache)
                 summary = pipeline.refine_sequence(cfg, seq, prep.cache, depth, std, colors, prep.excluded, sdir,

@@ -111,15 +111,14 @@ def _covered(mesh: o3d.geometry.TriangleMesh, points: np.ndarray, within: float,
     """(N,) bool: the closest point of ``mesh`` to each point is within ``within`` and not on its open boundary
     (an edge of one triangle, or a vertex of such an edge)."""
     tri = np.asarray(mesh.triangles, dtype=np.int64)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-    r = scene.compute_closest_points(o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32)))
+    if len(tri) == 0:
+        return np.zeros(len(points), bool)
+    r = ReferenceSurface(mesh).scene.compute_closest_points(
+        o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32)))
     q = r["points"].numpy().astype(np.float64)
     ids = r["primitive_ids"].numpy().astype(np.int64)
     uv = r["primitive_uvs"].numpy().astype(np.float64)
     near = np.linalg.norm(q - points, axis=1) <= within
-    if len(tri) == 0:
-        return np.zeros(len(points), bool)
     n_v = len(mesh.vertices)
     edges = np.sort(np.concatenate([tri[:, [1, 2]], tri[:, [2, 0]], tri[:, [0, 1]]]), axis=1)
     keys, counts = np.unique(edges[:, 0] * n_v + edges[:, 1], return_counts=True)

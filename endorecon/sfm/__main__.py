@@ -131,10 +131,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 0
     except EndoreconError as e:
-        from rich.text import Text
+        from endorecon.utils.cli import print_error
 
-        # Text, not markup (paths may hold brackets); not wrapped (a path or a key cut in two reads wrong)
-        console.print(Text("error: ", style="red") + Text(str(e)), soft_wrap=True, highlight=False)
+        print_error(e)
         return 2
 
 

@@ -28,10 +28,10 @@ from __future__ import annotations
 
 import copy
 import csv
-import math
 import io
 import json
 import logging
+import math
 import shutil
 from pathlib import Path
 

@@ -107,7 +107,6 @@ def sfm_cache_dir(cfg: DictConfig, data_root: Path | None) -> Path:
     return root / key
 
 
-
 def run_sfm(cfg: DictConfig, sequences: list[Sequence], data_root: Path | None = None) -> list[Sequence]:
     """SfM for every sequence, cached in ``paths.cache_dir/sfm/<hash>/<sequence>`` (resumable)."""
     from endorecon.sfm.stage import load_result
@@ -306,6 +305,16 @@ def weights_digest(module: torch.nn.Module) -> str:
     return h.hexdigest()[:16]
 
 
+def reusable_summary(out_dir: Path, made_by: str | None = None) -> dict | None:
+    """``out_dir/summary.json`` of a refined sequence if it may be reused: there, and (with ``made_by``) made by
+    those weights (:func:`weights_digest`); else None."""
+    done = Path(out_dir) / "summary.json"
+    if not done.is_file():
+        return None
+    summary = read_json(done, f"delete {out_dir} so that the sequence is refined again")
+    return summary if made_by is None or summary.get("made_by") == made_by else None
+
+
 def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, excluded: np.ndarray | None,
                     out_dir: Path, made_by: str | None = None) -> dict:
     """One sequence's end-of-iteration work; writes ``out_dir/{mesh.ply, poses.txt, simulated_depth.npz,
@@ -320,12 +329,11 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
 
     out_dir = Path(out_dir)
     done = out_dir / "summary.json"
+    summary = reusable_summary(out_dir, made_by)
+    if summary is not None:
+        return summary
     if done.is_file():
-        summary = read_json(done, f"delete {out_dir} so that the sequence is refined again")
-        if made_by is None or summary.get("made_by") == made_by:
-            return summary
-        log.info("%s: %s was made by other weights (%s, now %s); refining again", seq.name, done,
-                 summary.get("made_by"), made_by)
+        log.info("%s: %s was made by other weights; refining again with %s", seq.name, done, made_by)
     out_dir.mkdir(parents=True, exist_ok=True)
     n = len(seq)
     times = {}

@@ -27,6 +27,7 @@ bounding box, aspect kept, sides divisible by its stride.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -406,21 +407,17 @@ def run(cfg: DictConfig) -> Path:
     rec = out / "reconstruction"
     # the depth maps and the fusion / failure / PGO settings that reconstruction/ is made from
     rec_stamp = json.dumps({"depth": stamp, "settings": pipeline.refine_settings(cfg)}, sort_keys=True)
-    no_flags = np.zeros(len(small), bool)
-    if (rec / "summary.json").is_file() and _read_json(rec / "summary.json").get("stamp") != rec_stamp:
-        # made again beside the old one, which is replaced only once the new one is complete
+    done = (rec / "summary.json").is_file()
+    stale = done and _read_json(rec / "summary.json").get("stamp") != rec_stamp
+    refined_before = done and not stale
+    if stale:
         log.info("reconstruction/ was made from other depth maps or settings: running it again")
-        with atomic_dir(rec) as tmp:
-            summary = pipeline.refine_sequence(cfg, small, cache, depth, std, colors, no_flags, tmp)
-            summary["stamp"] = rec_stamp
-            atomic_write_text(tmp / "summary.json", json.dumps(summary, indent=2) + "\n")
-        refined_before = False
-    else:
-        refined_before = (rec / "summary.json").is_file()
-        summary = pipeline.refine_sequence(cfg, small, cache, depth, std, colors, no_flags, rec)
+    # a stale one is made again beside the old one, which is replaced only once the new one is complete
+    with atomic_dir(rec) if stale else contextlib.nullcontext(rec) as rec_dir:
+        summary = pipeline.refine_sequence(cfg, small, cache, depth, std, colors, np.zeros(len(small), bool), rec_dir)
         if summary.get("stamp") != rec_stamp:
             summary["stamp"] = rec_stamp
-            atomic_write_text(rec / "summary.json", json.dumps(summary, indent=2) + "\n")
+            atomic_write_text(rec_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     timed("failure detection + PGO + fusion", t0, skipped=refined_before)
     with atomic_path(out / "mesh.ply") as tmp:
         shutil.copyfile(rec / "mesh.ply", tmp)

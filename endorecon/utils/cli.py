@@ -32,19 +32,24 @@ def quote_path_overrides(argv: list[str], keys: tuple[str, ...]) -> list[str]:
     return out
 
 
+def print_error(e: BaseException) -> None:
+    """``error: <message>`` on stderr, as one message (the command lines' way of reporting an input error)."""
+    try:
+        from rich.console import Console
+        from rich.text import Text
+
+        # Text, not markup: messages hold paths and overrides with brackets.
+        # not wrapped at the terminal's width: a path or an override cut in two cannot be copied
+        Console(stderr=True).print(Text("error: ", style="bold red") + Text(str(e)), highlight=False,
+                                   soft_wrap=True)
+    except Exception:  # rich missing or broken terminal: plain text still says it
+        print(f"error: {e}", file=sys.stderr)
+
+
 def report_errors(fn, *args, **kwargs):
     """Call ``fn``; an :class:`EndoreconError` is printed as one message (no traceback) and exits with 2."""
     try:
         return fn(*args, **kwargs)
     except EndoreconError as e:
-        try:
-            from rich.console import Console
-            from rich.text import Text
-
-            # Text, not markup: messages hold paths and overrides with brackets.
-            # not wrapped at the terminal's width: a path or an override cut in two cannot be copied
-            Console(stderr=True).print(Text("error: ", style="bold red") + Text(str(e)), highlight=False,
-                                       soft_wrap=True)
-        except Exception:  # rich missing or broken terminal: plain text still says it
-            print(f"error: {e}", file=sys.stderr)
+        print_error(e)
         sys.exit(2)
