@@ -219,7 +219,7 @@ def render_depth(
     Args:
         mesh_or_renderer: a :class:`MeshRenderer` or anything it accepts.
         K: (3, 3) or (N, 3, 3) pixel-centre intrinsics.
-        cam_from_world: (N, 4, 4) poses; frames with any non-finite entry come back all invalid.
+        cam_from_world: (N, 4, 4) poses; frames whose pose or K has a non-finite entry come back all invalid.
         height, width: image size.
         mask: optional (H, W) or (N, H, W) bool valid-pixel mask (False pixels are invalid).
         chunk: frames cast per Open3D call.

@@ -140,3 +140,28 @@ def test_plain_tsdf_band_is_trunc_voxels_wide():
     z = coords.cpu().numpy()[:, 2][w > 0]
     reach = (z - 1.0).max() / voxel  # behind the surface (in front, the whole touched block is free space)
     assert 0.8 * trunc <= reach <= 1.2 * trunc, reach
+
+
+
+@pytest.mark.parametrize("cls", ["AdaptiveTSDF", "PlainTSDF"])
+def test_each_vertex_takes_the_colour_of_the_pixel_it_projects_to(cls):
+    """A frontal plane with a random colour per pixel: the fused mesh's vertices show the colour of the pixel
+    nearest their projection through the pixel-centre K.  A principal point off by the corner convention's half
+    pixel, or by the plain TSDF's one-pixel padding, shows a neighbour's colour at half or all of them."""
+    import endorecon.fusion as fusion
+    from test_fusion import H, K, W, integrate_all
+
+    z, voxel = 1.0013, 0.004  # one pixel at z = 1: 1 / 70 = 3.6 voxels; z off the voxel grid's layers
+    colour = np.random.default_rng(0).random((H, W, 3)).astype(np.float32)
+    vol = getattr(fusion, cls)(voxel, **({"compile": False} if cls == "AdaptiveTSDF" else {}))
+    integrate_all(vol, [np.full((H, W), z)], [np.full((H, W), voxel)], [np.eye(4)], [colour])
+    mesh = vol.extract_mesh()
+    p, c = mesh.vertex.positions.numpy().astype(float), mesh.vertex.colors.numpy()
+    assert len(p) > 10000
+    u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(int)
+    v = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(int)
+    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    assert inside.mean() > 0.99
+    same = np.abs(colour[v[inside], u[inside]] - c[inside]).max(1) < 0.01
+    # the rest: vertices between two voxels that see neighbouring pixels (a blend of the two)
+    assert same.mean() > 0.8, same.mean()

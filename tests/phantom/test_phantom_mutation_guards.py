@@ -1,6 +1,4 @@
-"""Mutation guards for ensure_dataset's settings comparison (endorecon/phantom/generate.py).
-
-Copy into tests/phantom/."""
+"""Mutation guards for ensure_dataset's settings comparison (endorecon/phantom/generate.py)."""
 
 import json
 

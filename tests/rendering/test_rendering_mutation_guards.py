@@ -1,6 +1,6 @@
 """Mutation guards for render_depth's mask handling (endorecon/rendering/raycast.py).
 
-Copy into tests/rendering/ (imports helpers from test_raycast.py there)."""
+Helpers come from test_raycast.py."""
 
 import numpy as np
 import pytest
@@ -27,3 +27,13 @@ def test_mask_in_the_projects_n1hw_convention():
     for a, b in zip(ref, got):
         np.testing.assert_array_equal(a, b)
     assert (got[1] == mask).all()
+
+
+def test_a_frame_with_non_finite_intrinsics_comes_back_invalid():
+    T = np.stack([np.eye(4)] * 4)
+    Ks = np.stack([K] * 4)
+    Ks[1, 0, 0] = np.nan
+    Ks[2, 0, 0] = np.inf  # rays of x = 0 that would still hit the plane
+    depth, valid = render_depth(plane_mesh(5.0, half=100.0), Ks, T, H, W)
+    assert valid[0].all() and valid[3].all()
+    assert not valid[1:3].any() and (depth[1:3] == 0).all()

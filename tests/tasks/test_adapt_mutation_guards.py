@@ -1,9 +1,7 @@
 """Mutation guards for the adaptation stage (endorecon/tasks/adapt.py).
 
-Copy into tests/tasks/ (imports the fixture and helpers from test_adapt.py there).  The first test repairs
-test_stage_writes_a_loadable_checkpoint_and_skips, whose last line fails on the current code: each
-"adapted again" check above it deletes adapt.json first (the record goes before the weights), so the final
-skip check had nothing to skip on; here every check runs on its own copy of the finished stage."""
+Helpers and the ``prepared`` fixture come from test_adapt.py.  The first test runs each "adapted again"
+check on its own copy of the finished stage, so that no check sees what an earlier one left."""
 
 import math
 import shutil

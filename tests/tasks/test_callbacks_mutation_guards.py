@@ -1,6 +1,4 @@
-"""Mutation guards for the bootstrap end stage and LastCheckpoint (endorecon/callbacks/).
-
-Copy into tests/tasks/."""
+"""Mutation guards for the bootstrap end stage and LastCheckpoint (endorecon/callbacks/)."""
 
 import types
 

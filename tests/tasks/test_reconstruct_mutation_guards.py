@@ -1,6 +1,6 @@
 """Mutation guards for reconstruct.py's input stage (endorecon/tasks/reconstruct.py).
 
-Copy into tests/tasks/ (imports helpers from test_reconstruct.py there)."""
+Helpers come from test_reconstruct.py."""
 
 import numpy as np
 import pytest

@@ -1,6 +1,6 @@
 """Mutation guards for the train task's settings check, iteration skipping and resume (endorecon/tasks/train.py).
 
-Copy into tests/tasks/ (imports helpers from test_train.py there)."""
+Helpers come from test_train.py."""
 
 import json
 import types
