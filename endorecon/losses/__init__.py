@@ -2,6 +2,7 @@
 
 from endorecon.losses.nll import (
     carried_std,
+    consistency_inputs,
     dense_simulation_loss,
     depth_consistency_loss,
     flow_depth_derivative,
@@ -14,6 +15,7 @@ from endorecon.losses.nll import (
 
 __all__ = [
     "carried_std",
+    "consistency_inputs",
     "dense_simulation_loss",
     "depth_consistency_loss",
     "flow_depth_derivative",

@@ -131,9 +131,12 @@ def _check_pair(depth_i, std_i, depth_j, std_j, mask_i) -> tuple:
     return shape
 
 
-def _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i, mask_j):
-    """Non-finite values, and j's outside ``mask_j``, set to 0 (= invalid to the warp, which also refuses a
-    sample that blends them in); returns m_i, d_i, d_j, s_j."""
+def consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i, mask_j):
+    """What the depth consistency terms compare: non-finite values, and j's outside ``mask_j``, set to 0
+    (= invalid to the warp, which also refuses a sample that blends them in).
+
+    Args: (B, 1, H, W) each; ``mask_j`` may be None.
+    Returns: m_i (B, 1, H, W) bool (i's usable pixels), d_i, d_j, s_j (B, 1, H, W)."""
     m_i = mask_i.bool() & torch.isfinite(depth_i) & torch.isfinite(std_i)
     ok_j = torch.isfinite(depth_j) & torch.isfinite(std_j)
     if mask_j is not None:
@@ -167,7 +170,7 @@ def carried_std(
     check_shape(cam_j_from_cam_i, "cam_j_from_cam_i", (shape[0], 4, 4))
     if mask_j is not None:
         _check_map(mask_j, "mask_j", depth_i.shape)
-    m_i, d_i, d_j, s_j = _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i, mask_j)
+    m_i, d_i, d_j, s_j = consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i, mask_j)
     _, valid, std_w = warp_depth(d_j, d_i, K, cam_j_from_cam_i.to(d_i.dtype), std_j=s_j)
     return torch.where(valid, std_w, _safe(std_i, m_i, 0.0))
 
@@ -221,7 +224,7 @@ def depth_consistency_loss(
         _check_map(std_j_in_i, "std_j_in_i", shape)
     if mask_j is not None:
         _check_map(mask_j, "mask_j", shape)
-    m_i, d_i, d_j, s_j = _consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i, mask_j)
+    m_i, d_i, d_j, s_j = consistency_inputs(depth_i, std_i, depth_j, std_j, mask_i, mask_j)
     warped, valid, std_w = warp_depth(d_j, d_i, K, cam_j_from_cam_i, std_j=s_j if std_j_in_i is None else None)
     valid = valid & m_i
     if std_j_in_i is not None:

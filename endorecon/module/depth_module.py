@@ -32,7 +32,13 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from endorecon.geometry import invert_pose, warp_depth
-from endorecon.losses import dense_simulation_loss, depth_consistency_loss, sparse_depth_loss, sparse_flow_loss
+from endorecon.losses import (
+    consistency_inputs,
+    dense_simulation_loss,
+    depth_consistency_loss,
+    sparse_depth_loss,
+    sparse_flow_loss,
+)
 from endorecon.module.visuals import pair_panel
 from endorecon.networks.flip import predict_flip_averaged
 from endorecon.networks.scaling import check_scale_mode, scale_depth, scale_depth_locally
@@ -345,11 +351,12 @@ class DepthModule(L.LightningModule):
             return
         B = batch["image_i"].shape[0]
         d_i, d_j = losses["depth"][:1].float(), losses["depth"][B : B + 1].float()
-        # what the depth consistency loss compares: j's depth inside j's mask only (outside it the network's
-        # output is unconstrained, and warping it in drew an error rim the loss never sees)
-        d_j = torch.where(batch["mask_j"][:1].bool() & torch.isfinite(d_j), d_j, torch.zeros_like(d_j))
+        # what the depth consistency loss compares (its own input rule): j's depth inside j's mask only (outside
+        # it the network's output is unconstrained, and warping it in drew an error rim the loss never sees)
+        s_i, s_j = losses["std"][:1].float(), losses["std"][B : B + 1].float()
+        m_i, d_i, d_j, _ = consistency_inputs(d_i, s_i, d_j, s_j, batch["mask_i"][:1], batch["mask_j"][:1])
         warped, valid, _ = warp_depth(d_j, d_i, batch["K"][:1].float(), batch["cam_j_from_cam_i"][:1].float())
-        valid = valid & batch["mask_i"][:1].bool()
+        valid = valid & m_i
         rel = torch.where(valid, (warped - d_i).abs() / d_i, torch.zeros_like(d_i))
         panel = pair_panel(
             batch["image_i"][0], batch["mask_i"][0], d_i[0], losses["std"][0], batch["sparse_valid_i"][0], rel[0], valid[0]

@@ -15,9 +15,11 @@ stage's rerun with other hyperparameters for that range".  For every such range
    nasal cavity), so each anchor also contributes its three camera axes as
    points at a length proportional to the anchors' spread (the same length in
    both worlds up to the scale being estimated; see :func:`_anchor_points`);
-3. replaces the poses of the replaced frames (flagged checked frames
-   +- ``replace_radius``, default ``failure.exclude_radius`` or ``interval // 2``:
-   the frames excluded from fusion) with the aligned segment poses.
+3. replaces the poses of the replaced frames with the aligned segment poses: the
+   range, from its first to its last flagged checked frame (the frames between
+   them, checked or not, lie in the failed span), widened by ``replace_radius``
+   (default ``failure.exclude_radius`` or ``interval // 2``: the frames excluded
+   from fusion around a flagged frame).
 
 Pose conversion: with x_cam = R_c x_seg + t_c (segment world) and
 x_w = s R x_seg + t, camera coordinates in current-world units are
