@@ -354,10 +354,11 @@ class DepthModule(L.LightningModule):
         # what the depth consistency loss compares (its own input rule): j's depth inside j's mask only (outside
         # it the network's output is unconstrained, and warping it in drew an error rim the loss never sees)
         s_i, s_j = losses["std"][:1].float(), losses["std"][B : B + 1].float()
-        m_i, d_i, d_j, _ = consistency_inputs(d_i, s_i, d_j, s_j, batch["mask_i"][:1], batch["mask_j"][:1])
-        warped, valid, _ = warp_depth(d_j, d_i, batch["K"][:1].float(), batch["cam_j_from_cam_i"][:1].float())
+        # (the warp gets the zero-filled copies; the panel shows the network's depth, its non-finite pixels blank)
+        m_i, di0, dj0, _ = consistency_inputs(d_i, s_i, d_j, s_j, batch["mask_i"][:1], batch["mask_j"][:1])
+        warped, valid, _ = warp_depth(dj0, di0, batch["K"][:1].float(), batch["cam_j_from_cam_i"][:1].float())
         valid = valid & m_i
-        rel = torch.where(valid, (warped - d_i).abs() / d_i, torch.zeros_like(d_i))
+        rel = torch.where(valid, (warped - di0).abs() / di0, torch.zeros_like(di0))
         panel = pair_panel(
             batch["image_i"][0], batch["mask_i"][0], d_i[0], losses["std"][0], batch["sparse_valid_i"][0], rel[0], valid[0]
         )
