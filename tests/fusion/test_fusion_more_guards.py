@@ -6,10 +6,19 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from endorecon.fusion import drop_small_components, read_mesh_ply, trim_boundary, write_mesh_ply
+from endorecon.fusion import (
+    AdaptiveTSDF,
+    PlainTSDF,
+    drop_small_components,
+    drop_uncertain,
+    read_mesh_ply,
+    trim_boundary,
+    write_mesh_ply,
+)
+from endorecon.fusion.tsdf import _torch_view
 from endorecon.utils.errors import InputError
 
-from test_fusion import _grid_mesh
+from test_fusion import H, K, W, _grid_mesh, integrate_all
 
 
 def _mesh_with_everything(n: int = 5) -> o3d.t.geometry.TriangleMesh:
@@ -88,8 +97,6 @@ def test_pieces_joined_only_through_a_triangles_last_edge_are_one_piece():
 
 def test_drop_uncertain_median_is_over_the_used_vertices_only():
     """Vertices no triangle uses (however large their std) have no say in the median."""
-    from endorecon.fusion import drop_uncertain
-
     n = 6
     grid = _grid_mesh(n)
     pos = grid.vertex.positions.numpy()
@@ -108,8 +115,6 @@ def test_drop_uncertain_median_is_over_the_used_vertices_only():
 def test_saved_mesh_drops_pieces_that_the_trim_leaves_under_min_component_fraction(tmp_path):
     """A small piece holds 10 % of the extracted triangles (kept at min_component_fraction = 0.05); one ring of
     trim leaves it 2 of 100: the saved mesh must not keep it."""
-    from endorecon.fusion import PlainTSDF
-
     big, small = _grid_mesh(10), _grid_mesh(4)  # 162 and 18 triangles
     pb = big.vertex.positions.numpy()
     ps = small.vertex.positions.numpy() + np.array([50, 0, 0], np.float32)
@@ -127,11 +132,6 @@ def test_saved_mesh_drops_pieces_that_the_trim_leaves_under_min_component_fracti
 
 def test_plain_tsdf_band_is_trunc_voxels_wide():
     """PlainTSDF fuses trunc_voxels voxels each side of the surface (not fewer)."""
-    from endorecon.fusion import PlainTSDF
-    from endorecon.fusion.tsdf import _torch_view
-
-    from test_fusion import H, K, W
-
     voxel, trunc = 0.01, 6.0
     vol = PlainTSDF(voxel, trunc_voxels=trunc, block_search="every_pixel")
     vol.integrate(np.full((H, W), 1.0, np.float32), None, None, K, np.eye(4))
@@ -143,17 +143,14 @@ def test_plain_tsdf_band_is_trunc_voxels_wide():
 
 
 
-@pytest.mark.parametrize("cls", ["AdaptiveTSDF", "PlainTSDF"])
+@pytest.mark.parametrize("cls", [AdaptiveTSDF, PlainTSDF])
 def test_each_vertex_takes_the_colour_of_the_pixel_it_projects_to(cls):
     """A frontal plane with a random colour per pixel: the fused mesh's vertices show the colour of the pixel
     nearest their projection through the pixel-centre K.  A principal point off by the corner convention's half
     pixel, or by the plain TSDF's one-pixel padding, shows a neighbour's colour at half or all of them."""
-    import endorecon.fusion as fusion
-    from test_fusion import H, K, W, integrate_all
-
     z, voxel = 1.0013, 0.004  # one pixel at z = 1: 1 / 70 = 3.6 voxels; z off the voxel grid's layers
     colour = np.random.default_rng(0).random((H, W, 3)).astype(np.float32)
-    vol = getattr(fusion, cls)(voxel, **({"compile": False} if cls == "AdaptiveTSDF" else {}))
+    vol = cls(voxel, **({"compile": False} if cls is AdaptiveTSDF else {}))
     integrate_all(vol, [np.full((H, W), z)], [np.full((H, W), voxel)], [np.eye(4)], [colour])
     mesh = vol.extract_mesh()
     p, c = mesh.vertex.positions.numpy().astype(float), mesh.vertex.colors.numpy()

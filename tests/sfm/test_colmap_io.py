@@ -6,7 +6,12 @@ import torch
 
 from endorecon.data.sequence import Sequence
 from endorecon.geometry import se3_exp
-from endorecon.sfm.colmap import read_colmap_model, write_colmap_model
+from endorecon.sfm.colmap import (
+    read_colmap_model,
+    reconstruction_arrays,
+    sequence_to_reconstruction,
+    write_colmap_model,
+)
 from endorecon.utils.errors import InputError
 
 
@@ -73,3 +78,18 @@ def test_read_model_with_other_frames(tmp_path):
     out = write_colmap_model(seq, tmp_path / "model")
     with pytest.raises(InputError, match="matches a frame"):
         read_colmap_model(out, ["/x/other.png"])
+
+
+def test_an_image_the_model_holds_without_a_pose_is_an_unregistered_frame():
+    """A model can keep an image whose frame lost its pose (COLMAP deregisters frames it cannot keep): its row
+    is NaN and its observations are not visibility, while the other frames' poses read back."""
+    seq = _random_sequence()  # frame 2 unregistered
+    rec = sequence_to_reconstruction(seq)
+    rec.deregister_frame(rec.images[4].frame_id)  # image ids are frame index + 1: frame 3
+    assert not rec.images[4].has_pose
+    out = reconstruction_arrays(rec, [f.name for f in seq.frame_paths])
+    assert np.isnan(out["cam_from_world"][[2, 3]]).all()
+    np.testing.assert_allclose(out["cam_from_world"][[0, 1, 4, 5]], seq.cam_from_world[[0, 1, 4, 5]], atol=1e-9)
+    # (COLMAP deletes the points that are left with one observation)
+    left = [[f for f in v if f != 3] for v in seq.visibility]
+    assert [list(v) for v in out["visibility"]] == [v for v in left if len(v) >= 2]
