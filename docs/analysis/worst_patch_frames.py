@@ -39,6 +39,7 @@ def main(argv: list[str]) -> None:
     from endorecon.tasks import pipeline
     from endorecon.tasks.reconstruct import load_module
     from endorecon.tasks.train import prepare_sequences
+    from worst_patch_parallax import project  # this folder's other analysis (run as a script, it is on the path)
 
     args = dict(a.split("=", 1) for a in argv)
     run_root = Path(args.get("run_root", ROOT / "outputs")).resolve()
@@ -75,11 +76,9 @@ def main(argv: list[str]) -> None:
     gh, gw = gt.depth_mm.shape[1:]
     for i in range(len(seq)):
         rendered = renderer.render(K, poses[i], H, W)["depth"]
-        Xc = patch @ poses[i][:3, :3].T + poses[i][:3, 3]
-        z = Xc[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.round(Xc[:, 0] / z * K[0, 0] + K[0, 2]).astype(int)
-            v = np.round(Xc[:, 1] / z * K[1, 1] + K[1, 2]).astype(int)
+            uv, z = project(patch, poses[i], K)
+            u, v = np.round(uv).T.astype(int)
         ok = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         ok[ok] &= seq.mask[v[ok], u[ok]] & (np.abs(rendered[v[ok], u[ok]] - z[ok]) < 0.03 * z[ok])
         if ok.sum() < 10:
