@@ -439,10 +439,6 @@ def test_non_finite_batch_is_skipped_under_ddp(tmp_path):
 def test_logged_warp_error_panel_uses_frame_j_mask(tmp_path, monkeypatch):
     """A network exact inside both masks and wrong outside: the logged warped-pair error must be ~0, as the
     depth consistency loss sees it (j's depth outside j's mask was warped in: an error rim up to 40 %)."""
-    from lightning.pytorch.loggers import TensorBoardLogger
-
-    import endorecon.module.depth_module as dmod
-
     b = make_batch(B=1, scale=1.0)
     K, T = b["K"][0], b["cam_j_from_cam_i"][0]
     n, c = torch.tensor([0.2, 0.1, 1.0]), 5.0
@@ -457,13 +453,25 @@ def test_logged_warp_error_panel_uses_frame_j_mask(tmp_path, monkeypatch):
 
     module = DepthModule(_model_cfg(log_images_every_n_steps=1))
     module.net = Exact()
-    got = {}
+    args = logged_panel_args(module, b, module.compute_losses(b), tmp_path, monkeypatch)
+    rel, valid = args[5], args[6]
+    assert valid.sum() > 100 and rel[valid].max() < 1e-3
+
+
+def logged_panel_args(module, batch, losses, tmp_path, monkeypatch) -> tuple:
+    """What ``module._log_images`` hands ``pair_panel`` (image, mask, depth, std, sparse, rel error, valid)."""
+    from lightning.pytorch.loggers import TensorBoardLogger
+
+    import endorecon.module.depth_module as dmod
+
+    got = []
 
     def spy(*args):
-        got["rel"], got["valid"] = args[5], args[6]
+        got.append(args)
         return torch.zeros(3, 4, 4)
 
     monkeypatch.setattr(dmod, "pair_panel", spy)
     module._trainer = L.Trainer(logger=TensorBoardLogger(str(tmp_path)), accelerator="cpu", enable_progress_bar=False)
-    module._log_images(b, module.compute_losses(b), "train")
-    assert got["valid"].sum() > 100 and got["rel"][got["valid"]].max() < 1e-3
+    module._log_images(batch, losses, "train")
+    assert len(got) == 1
+    return got[0]

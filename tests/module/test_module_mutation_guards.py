@@ -10,7 +10,7 @@ from endorecon.losses import dense_simulation_loss, depth_consistency_loss, spar
 from endorecon.module import DepthModule
 from endorecon.networks import scale_depth, scale_depth_locally
 
-from test_depth_module import _model_cfg, make_batch
+from test_depth_module import _model_cfg, logged_panel_args, make_batch
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
@@ -142,25 +142,13 @@ def test_a_non_finite_total_is_skipped_before_it_is_logged(tmp_path):
 def test_logged_panel_shows_the_networks_depth_with_its_non_finite_pixels_blank(tmp_path, monkeypatch):
     """The warp gets zero-filled depth (the losses' input rule); the depth panel gets the network's own, so a NaN
     pixel stays blank there instead of reading as depth 0 (which would also stretch the colour range)."""
-    import lightning as L
-    from lightning.pytorch.loggers import TensorBoardLogger
-
-    import endorecon.module.depth_module as dmod
-
     b = make_batch(B=1, scale=1.0)
     module = DepthModule(_model_cfg(log_images_every_n_steps=1))
     losses = module.compute_losses(b)
     depth = losses["depth"].detach().clone()
     depth[0, 0, 5, 7] = float("nan")
-    got = {}
-
-    def spy(*args):
-        got["depth"], got["valid"] = args[2], args[6]
-        return torch.zeros(3, 4, 4)
-
-    monkeypatch.setattr(dmod, "pair_panel", spy)
-    module._trainer = L.Trainer(logger=TensorBoardLogger(str(tmp_path)), accelerator="cpu", enable_progress_bar=False)
-    module._log_images(b, {**losses, "depth": depth}, "train")
-    assert torch.isnan(got["depth"][0, 5, 7]) and not got["valid"][0, 5, 7]
-    finite = torch.isfinite(got["depth"])
-    assert torch.equal(got["depth"][finite], depth[0][finite])
+    args = logged_panel_args(module, b, {**losses, "depth": depth}, tmp_path, monkeypatch)
+    shown, valid = args[2], args[6]
+    assert torch.isnan(shown[0, 5, 7]) and not valid[0, 5, 7]
+    finite = torch.isfinite(shown)
+    assert torch.equal(shown[finite], depth[0][finite])
