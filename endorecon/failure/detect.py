@@ -1,7 +1,7 @@
 """Failure detection: flag frames whose depth or pose disagrees with the fused geometry or SfM.
 
-Every ``interval``-th frame is checked with the three metrics of the method,
-all Gaussian NLLs from :mod:`endorecon.losses` (per frame, mean over pixels):
+Every ``interval``-th frame, and the last one (``check_last_frame``), is checked with the three metrics of the
+method, all Gaussian NLLs from :mod:`endorecon.losses` (per frame, mean over pixels):
 
 * ``dense_simulation``: the network's depth vs the simulated depth (the fused
   mesh rendered at the frame's pose).  Catches a bad depth prediction, and a
@@ -68,6 +68,7 @@ DEFAULTS = {
     "min_valid_pixels": 20,
     "exclude_radius": 2,
     "batch_size": 16,
+    "check_last_frame": True,
 }
 
 SparseFlowFn = Callable[[int, int], "tuple[torch.Tensor, torch.Tensor] | None"]
@@ -228,7 +229,8 @@ def detect_failures(
     sparse_flow_fn: SparseFlowFn,
     cfg: Mapping | None = None,
 ) -> FailureReport:
-    """Check every ``interval``-th frame with the three metrics and flag those over threshold.
+    """Check every ``interval``-th frame (and the last, ``check_last_frame``) with the three metrics and flag
+    those over threshold.
 
     Args:
         depth: (N, 1, H, W) network depth.
@@ -270,6 +272,10 @@ def detect_failures(
     dt = depth.dtype
     registered = torch.isfinite(cam_from_world.flatten(1)).all(1)
     checked = list(range(0, N, interval))
+    # the last frame too: the frames after the last multiple of interval were judged by nobody (with 60 frames,
+    # 58 and 59 lay beyond frame 55's exclusion radius), and the end of a video often looks farthest
+    if _get(cfg, "check_last_frame") and checked[-1] != N - 1:
+        checked.append(N - 1)
     reg_frames = [i for i in range(N) if registered[i]]
     scale = 1.0
     if _get(cfg, "normalize_depth") and reg_frames:

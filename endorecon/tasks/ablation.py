@@ -20,8 +20,8 @@ Every variant is registered to the patient's CT with the same Sim(3) + ICP and
 reported with the same residual statistics, on its mesh as the current fusion config saves it
 (:func:`configured_mesh`: meshes of older runs get the configured boundary trim first).  A ``full`` or
 ``iteration0`` row whose training run used other fusion / failure / PGO settings is made again from
-that iteration's network with the current ones (:func:`refuse_iteration`) and marked ``*`` in the
-table; the variant dirs record what they were made from (``source.json``) and are rebuilt when it changes.
+that iteration's network with the current ones, after the earlier iterations' stages that differ as well
+(:func:`refuse_iteration`), and marked ``*`` in the table; the variant dirs record what they were made from (``source.json``) and are rebuilt when it changes.
 """
 
 from __future__ import annotations
@@ -267,33 +267,46 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
 def refuse_iteration(cfg: DictConfig, info, fold_dir: Path, it: int, sfm_seq, out_root: Path,
                      why: list[str]) -> dict:
     """The held-out sequence's end-of-iteration stage of ``fold_dir/iteration=<it>`` run again, from that
-    iteration's network and its inputs (previous iteration's poses and flags) but with the settings of
-    ``cfg``: for a fold trained before a fusion / failure / PGO setting changed.  The earlier iterations'
-    networks were trained with the old settings; the table says which rows were made this way.
+    iteration's network but with the settings of ``cfg``: for a fold trained before a fusion / failure / PGO
+    setting changed.  A stage starts from the previous iteration's poses and left-out frames, which those
+    settings decide as well, so every earlier iteration whose recorded settings differ is run again first, in
+    order, each from its own network (the training run's outputs stand for the iterations that match).  The
+    networks themselves were trained with the old settings; the table says which rows were made this way.
 
-    Writes ``out_root/iteration=<it>/sequences/<slug>/`` (the layout the SfM rerun of repeated failures
-    reads its previous report from; that report is the training run's) and returns the CT evaluation."""
+    Writes ``out_root/iteration=<k>/sequences/<slug>/`` for the stages it runs (the layout the SfM rerun of
+    repeated failures reads its previous report from; where the previous iteration stands as trained, its
+    report is copied there) and returns the CT evaluation of iteration ``it``'s."""
     from endorecon.tasks.reconstruct import load_module
     from endorecon.tasks.train import prepare_sequences
 
-    it_dir = Path(fold_dir) / f"iteration={it}"
     slug = pipeline._slug(sfm_seq.name)
-    vdir = Path(out_root) / f"iteration={it}" / "sequences" / slug
-    ckpt = it_dir / "checkpoints" / "last.ckpt"
-    _reset_if_other_source(vdir, {"checkpoint": file_id(ckpt), "settings": refine_settings(cfg),
-                                  "sfm": sfm_fingerprint(sfm_seq)})
-    if not (vdir / "summary.json").is_file():
-        log.info("%s: %s ran with other settings (%s); its last stage again into %s", sfm_seq.name, it_dir,
-                 "; ".join(why), vdir)
-        prev = Path(fold_dir) / f"iteration={it - 1}" if it > 0 else None
-        if prev is not None and (prev / "sequences" / slug / "failures.csv").is_file():
-            dst = Path(out_root) / f"iteration={it - 1}" / "sequences" / slug / "failures.csv"
-            with atomic_path(dst) as tmp:
-                shutil.copyfile(prev / "sequences" / slug / "failures.csv", tmp)
-        prep = prepare_sequences(cfg, [sfm_seq], prev)[0]
-        module, _ = load_module(ckpt)
-        depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)
-        pipeline.refine_sequence(cfg, prep.seq, prep.cache, depth, std, colors, prep.excluded, vdir)
+    settings = refine_settings(cfg)
+    prev = None  # the run dir whose iteration=<k-1>/sequences/<slug> the stage k starts from
+    for k in range(it + 1):
+        it_dir = Path(fold_dir) / f"iteration={k}"
+        if k < it and not settings_diff(recorded_settings(it_dir), settings):
+            prev = Path(fold_dir)  # this iteration stands as trained
+            continue
+        vdir = Path(out_root) / f"iteration={k}" / "sequences" / slug
+        ckpt = it_dir / "checkpoints" / "last.ckpt"
+        # the previous stage's source too: a stage made after another one of iteration k-1 is made again
+        prev_summary = None if prev is None else prev / f"iteration={k - 1}" / "sequences" / slug / "summary.json"
+        _reset_if_other_source(vdir, {"checkpoint": file_id(ckpt), "settings": settings,
+                                      "sfm": sfm_fingerprint(sfm_seq),
+                                      "previous": None if prev_summary is None else file_id(prev_summary)})
+        if not (vdir / "summary.json").is_file():
+            log.info("%s: %s ran with other settings (%s); its last stage again into %s", sfm_seq.name, it_dir,
+                     "; ".join(why), vdir)
+            src = None if prev is None else prev / f"iteration={k - 1}"
+            if src is not None and src.parent != Path(out_root) and (src / "sequences" / slug / "failures.csv").is_file():
+                dst = Path(out_root) / f"iteration={k - 1}" / "sequences" / slug / "failures.csv"
+                with atomic_path(dst) as tmp:
+                    shutil.copyfile(src / "sequences" / slug / "failures.csv", tmp)
+            prep = prepare_sequences(cfg, [sfm_seq], src)[0]
+            module, _ = load_module(ckpt)
+            depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)
+            pipeline.refine_sequence(cfg, prep.seq, prep.cache, depth, std, colors, prep.excluded, vdir)
+        prev = Path(out_root)
     _, poses = read_poses_txt(vdir / "poses.txt")
     return pipeline.evaluate_against_ct(info.root, sfm_seq, configured_mesh(cfg, vdir / "mesh.ply", vdir), poses,
                                         vdir / "evaluation")

@@ -274,6 +274,8 @@ def refine_poses(cfg_pgo: DictConfig, seq: Sequence, cache, depth, std):
 # its output (how it runs, not what it computes)
 REFINE_SETTINGS = ("fusion", "failure", "pgo")
 _NO_EFFECT = {"fusion": ("compile", "device"), "pgo": ("progress", "std_cache_mb", "flow_at_points")}
+# failure keys added since runs began to record their settings: what refine_sequence does without them
+FAILURE_ADDED_DEFAULTS = {"keep_excluded": False, "check_last_frame": False}
 
 
 def refine_settings(cfg) -> dict | None:
@@ -287,6 +289,8 @@ def refine_settings(cfg) -> dict | None:
             d = OmegaConf.to_container(cfg[g], resolve=True) if g in cfg else None
             if g == "fusion" and isinstance(d, dict):  # a key a config lacks: what build_fusion used for it
                 d = {**FUSION_DEFAULTS, **d}
+            if g == "failure" and isinstance(d, dict):
+                d = {**FAILURE_ADDED_DEFAULTS, **d}
             if isinstance(d, dict):
                 d = {k: v for k, v in d.items() if k not in _NO_EFFECT.get(g, ())}
             out[g] = d
@@ -324,7 +328,12 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
 
     A frame range flagged again after being flagged in the previous iteration
     (``<run>/iteration=<i-1>/sequences/<slug>/failures.csv``) is solved again by SfM and its aligned poses
-    replace the current ones before PGO (:mod:`endorecon.tasks.resfm`, ``failure.rerun``)."""
+    replace the current ones before PGO (:mod:`endorecon.tasks.resfm`, ``failure.rerun``).
+
+    ``excluded`` (N,) bool: the frames the previous iteration left out.  They stay out of both fusions here, and
+    this iteration's check decides whether the next iteration leaves them out again; with
+    ``failure.keep_excluded`` it does whatever the check says (``kept_out`` in the summary: the ones that passed),
+    so a frame once left out stays out for the rest of the run."""
     from endorecon.failure import detect_failures
 
     out_dir = Path(out_dir)
@@ -362,6 +371,13 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         # only every interval-th frame is checked; its neighbours within exclude_radius share its verdict
         radius = cfg.failure.get("exclude_radius")
         flagged[[f for f in report.excluded_frames(None if radius is None else int(radius)) if f < n]] = True
+    kept_out = []  # left out by the previous iteration, passed this check, passed on anyway (failure.keep_excluded)
+    if cfg.failure.enabled and excluded is not None and cfg.failure.get("keep_excluded", False):
+        kept_out = [int(f) for f in np.flatnonzero(excluded & ~flagged & registered)]
+        flagged |= excluded
+        if kept_out:
+            log.info("%s: frames %s passed this check but stay out of the next iteration (failure.keep_excluded)",
+                     seq.name, kept_out)
     times["failure_s"] = time.perf_counter() - t0
 
     # 2b. a range flagged in this and the previous iteration: SfM rerun on it, aligned poses spliced in.
@@ -409,6 +425,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         log.warning("%s: every frame flagged; fusing all registered frames", seq.name)
         keep = use
         flagged = np.zeros(n, bool)  # nothing was left out after all (nor is in the next iteration)
+        kept_out = []
     volume = fuse_sequence(cfg.fusion, seq, depth, std, colors, poses, keep)
     volume.save_mesh(out_dir / "mesh.ply")
     free_space = getattr(volume, "last_free_space", None)  # what the free-space check removed from the saved mesh (None: off)
@@ -425,6 +442,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         flagged=[int(f) for f in report.flagged_frames] if cfg.failure.enabled else [],
         n_flagged=len(report.flagged_frames) if cfg.failure.enabled else 0,
         excluded=[int(i) for i in np.flatnonzero(flagged)],  # left out of this fusion and the next iteration
+        kept_out=kept_out,  # of those, the ones passed on although they passed the check (failure.keep_excluded)
         all_flagged_fused=all_flagged,  # every frame was flagged: all were fused, none left out
         checked=int(len(report.checked_frames)) if hasattr(report, "checked_frames") else None,
         pgo=pgo_summary,

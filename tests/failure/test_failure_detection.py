@@ -71,6 +71,21 @@ def test_corrupted_pose_and_depth_are_flagged(scene, render_at):
     assert all(reasons[f] == "" for f in (0, 15, 20))
 
 
+def test_the_last_frame_is_checked_too():
+    """24 frames at interval 5: frame 23 lies 3 frames after frame 20, beyond its exclusion radius, so nobody
+    judged it; now the last frame is checked, and a bad one is flagged."""
+    n = 24
+    sc = make_scene(n_frames=n)
+    depth = sc.depth.clone()
+    depth[n - 1] *= 1.2
+    sim = sc.render(sc.cam_from_world)
+    r = detect(sc, depth, sim, sc.cam_from_world)
+    assert list(r.frames) == [0, 5, 10, 15, 20, n - 1]
+    assert r.flagged_frames == [n - 1] and r.excluded_frames(2) == [n - 3, n - 2, n - 1]
+    old = detect(sc, depth, sim, sc.cam_from_world, cfg={"check_last_frame": False})
+    assert list(old.frames) == [0, 5, 10, 15, 20] and old.flagged_frames == [] and old.excluded_frames(2) == []
+
+
 def test_neighbor_reduction_min_blames_only_the_bad_frame(scene):
     T = corrupt_pose(scene.cam_from_world, BAD_POSE, [0.04, 0.0, 0.02, 0.0, 0.04, 0.0])
     sim = scene.render(scene.cam_from_world)

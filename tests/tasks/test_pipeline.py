@@ -128,6 +128,12 @@ def test_settings_diff_names_what_changed():
     assert settings_diff(settings_of(a), settings_of(same)) == []  # an explicit default is no change
     assert settings_diff(settings_of(a), settings_of(a)) == []
     assert settings_diff(None, settings_of(a)) == ["settings unrecorded"]
+    # failure.keep_excluded came later: a record without it ran as it does at false
+    kept = OmegaConf.create({"fusion": {"c1": 0.1}, "failure": {"enabled": True, "keep_excluded": True},
+                             "pgo": {"enabled": True}})
+    off = OmegaConf.merge(same, {"failure": {"keep_excluded": False}})
+    assert settings_diff(settings_of(a), settings_of(off)) == []
+    assert settings_diff(settings_of(a), settings_of(kept)) == ["failure.keep_excluded: False -> True"]
 
 def test_sfm_cache_is_found_through_a_symlinked_data_root(tmp_path):
     """The same data through a symlink (another output root, another working directory) must reuse its SfM:
@@ -191,6 +197,73 @@ def test_ablation_variants_follow_the_sfm_model_and_ignore_settings_added_since(
     (legacy / "summary.json").write_text("{}")
     _reset_if_other_source(legacy, src)
     assert not (legacy / "summary.json").exists()
+
+
+@pytest.mark.parametrize("first_stands", [False, True])
+def test_refused_stages_start_from_the_refused_previous_iteration(tmp_path, monkeypatch, first_stands):
+    """A fold trained with other failure settings: iteration 2's stage must start from an iteration 1 made with
+    the current ones (whose left-out frames those settings decide), and that one from iteration 0's; an
+    iteration whose recorded settings match stands as trained (its report copied beside the refused ones).
+    Run again, nothing is made again."""
+    import json
+    import types
+    from pathlib import Path
+
+    import endorecon.tasks.reconstruct as rc
+    import endorecon.tasks.train as tr
+    from endorecon.data.sequence import write_poses_txt
+    from endorecon.tasks import ablation as ab
+
+    new = OmegaConf.create({"fusion": {}, "failure": {"enabled": True, "keep_excluded": True}, "pgo": {}})
+    old = OmegaConf.create({"fusion": {}, "failure": {"enabled": True}, "pgo": {}})
+    fold_dir, out = tmp_path / "fold", tmp_path / "out"
+    seq = types.SimpleNamespace(name="p1/seq_00")
+    slug = pipeline._slug(seq.name)
+    for k in range(3):
+        it_dir = fold_dir / f"iteration={k}"
+        (it_dir / ".hydra").mkdir(parents=True)
+        OmegaConf.save(new if (k == 0 and first_stands) else old, it_dir / ".hydra" / "config.yaml")
+        (it_dir / "checkpoints").mkdir()
+        (it_dir / "checkpoints" / "last.ckpt").write_text(f"net {k}")
+        sd = it_dir / "sequences" / slug
+        sd.mkdir(parents=True)
+        (sd / "failures.csv").write_text(f"report {k}")
+        (sd / "summary.json").write_text("{}")
+    prevs, made = [], []
+
+    def refine(cfg, s, cache, d, st, col, exc, vdir):
+        made.append(Path(vdir))
+        Path(vdir).mkdir(parents=True, exist_ok=True)
+        write_poses_txt(Path(vdir) / "poses.txt", ["f0"], np.eye(4)[None])
+        (Path(vdir) / "failures.csv").write_text("refused report")
+        (Path(vdir) / "summary.json").write_text(json.dumps({"made": str(vdir)}))
+
+    monkeypatch.setattr(tr, "prepare_sequences",
+                        lambda c, s, p: prevs.append(p) or [types.SimpleNamespace(seq=s[0], cache=None, excluded=None)])
+    monkeypatch.setattr(rc, "load_module", lambda p: (p.read_text(), None))
+    monkeypatch.setattr(pipeline, "infer_depth", lambda *a: (None, None, None))
+    monkeypatch.setattr(pipeline, "refine_sequence", refine)
+    monkeypatch.setattr(pipeline, "evaluate_against_ct", lambda root, s, mesh, poses, o: {"mesh": Path(mesh)})
+    monkeypatch.setattr(ab, "sfm_fingerprint", lambda s: "x")
+    monkeypatch.setattr(ab, "configured_mesh", lambda c, m, o: m)
+    info = types.SimpleNamespace(root=tmp_path)
+    ev = ab.refuse_iteration(new, info, fold_dir, 2, seq, out, ["failure.keep_excluded: False -> True"])
+    stage = lambda k: out / f"iteration={k}" / "sequences" / slug  # noqa: E731
+    assert ev["mesh"] == stage(2) / "mesh.ply"
+    if first_stands:
+        assert made == [stage(1), stage(2)]
+        assert prevs == [fold_dir / "iteration=0", out / "iteration=1"]
+        assert (stage(0) / "failures.csv").read_text() == "report 0"  # for the SfM rerun's look back
+    else:
+        assert made == [stage(0), stage(1), stage(2)]
+        assert prevs == [None, out / "iteration=0", out / "iteration=1"]
+    made.clear()
+    ab.refuse_iteration(new, info, fold_dir, 2, seq, out, [])
+    assert made == []
+    # iteration 1 made again (another network): iteration 2's stage, which started from it, too
+    (fold_dir / "iteration=1" / "checkpoints" / "last.ckpt").write_text("net 1, retrained")
+    ab.refuse_iteration(new, info, fold_dir, 2, seq, out, [])
+    assert made == [stage(1), stage(2)]
 
 
 def test_ablation_rows_of_each_held_out_video_use_that_videos_mesh(tmp_path, monkeypatch):

@@ -73,8 +73,8 @@ def _patch_stages(monkeypatch, pgo_poses=None, resfm_poses=None):
     return fused
 
 
-def _cfg(failure_enabled, pgo_enabled):
-    return OmegaConf.create(dict(fusion={}, failure=dict(enabled=failure_enabled, exclude_radius=None),
+def _cfg(failure_enabled, pgo_enabled, **failure):
+    return OmegaConf.create(dict(fusion={}, failure=dict(enabled=failure_enabled, exclude_radius=None, **failure),
                                  pgo=dict(enabled=pgo_enabled)))
 
 
@@ -105,6 +105,19 @@ def test_frames_the_sfm_rerun_registers_or_loses_follow_its_poses(tmp_path, monk
     assert np.isfinite(final_poses[1]).all() and np.isnan(final_poses[2]).all()
     assert final_use.tolist() == [True, True, False, True]
     assert summary["fused"] == 3 and summary["registered"] == 3
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_frames_the_previous_iteration_left_out(tmp_path, monkeypatch, keep):
+    """Frame 1 was left out by the previous iteration and this check flags nothing: it stays out of both fusions
+    here; the next iteration gets it back unless failure.keep_excluded passes it on (``kept_out``)."""
+    fused = _patch_stages(monkeypatch)
+    excluded = np.array([False, True, False, False])
+    summary = pipeline.refine_sequence(_cfg(True, False, keep_excluded=keep), _seq(_poses()), None, *_tensors(),
+                                       excluded, tmp_path)
+    assert [use.tolist() for _, use in fused] == [[True, False, True, True]] * 2
+    assert summary["excluded"] == ([1] if keep else []) and summary["kept_out"] == ([1] if keep else [])
+    assert summary["fused"] == 3
 
 
 def test_frames_without_a_finite_pose_are_not_fused(monkeypatch):
