@@ -428,7 +428,8 @@ def write_table(rows: list[dict], out_dir: Path) -> tuple[Path, Path]:
             md.append(fmt({"patient": "**mean**", "variant": v, **mean}))
     if refused:
         md += ["", "\\* the iteration's training run used other settings (" + "; ".join(refused) + "): its last stage "
-               "(fusion, failure detection, PGO) was run again from that iteration's network with the current ones; "
-               "the networks of the earlier iterations were trained with the old settings."]
+               "(fusion, failure detection, PGO) was run again from that iteration's network with the current ones, "
+               "after the earlier iterations' stages, each from its own network; the networks were trained with the "
+               "old settings."]
     md_path = atomic_write_text(out_dir / "results.md", "\n".join(md) + "\n")
     return csv_path, md_path

@@ -233,7 +233,7 @@ def test_results_table_runs_again_the_last_stage_of_iterations_trained_with_othe
         assert by[v]["refused"] == ["fusion.mask_erode_px: 0 -> 3"], by[v]
         sdir = tmp_path / "fold=0" / v / f"iteration={it}" / "sequences" / "patient_00__seq_00"
         assert (sdir / "mesh.ply").is_file() and by[v]["mean_mm"] is not None
-    # the SfM rerun of repeated failures finds the training run's previous report in the same layout
+    # iteration 1's stage started from iteration 0's made again (its report where the SfM rerun looks back)
     assert (tmp_path / "fold=0" / "full" / "iteration=0" / "sequences" / "patient_00__seq_00" / "failures.csv").is_file()
     assert "refused" not in by["plain_fusion"]
     md = ablation.write_table(rows, tmp_path)[1].read_text()
