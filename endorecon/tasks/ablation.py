@@ -21,7 +21,8 @@ reported with the same residual statistics, on its mesh as the current fusion co
 (:func:`configured_mesh`: meshes of older runs get the configured boundary trim first).  A ``full`` or
 ``iteration0`` row whose training run used other fusion / failure / PGO settings is made again from
 that iteration's network with the current ones, after the earlier iterations' stages that differ as well
-(:func:`refuse_iteration`), and marked ``*`` in the table; the variant dirs record what they were made from (``source.json``) and are rebuilt when it changes.
+(:func:`refuse_iteration`), and marked ``*`` in the table; the variant dirs record what they were made from
+(``source.json``) and are rebuilt when it changes.
 """
 
 from __future__ import annotations
@@ -298,10 +299,11 @@ def refuse_iteration(cfg: DictConfig, info, fold_dir: Path, it: int, sfm_seq, ou
             log.info("%s: %s ran with other settings (%s); its last stage again into %s", sfm_seq.name, it_dir,
                      "; ".join(why), vdir)
             src = None if prev is None else prev / f"iteration={k - 1}"
-            if src is not None and src.parent != Path(out_root) and (src / "sequences" / slug / "failures.csv").is_file():
+            report = None if src is None else src / "sequences" / slug / "failures.csv"
+            if report is not None and src.parent != Path(out_root) and report.is_file():
                 dst = Path(out_root) / f"iteration={k - 1}" / "sequences" / slug / "failures.csv"
                 with atomic_path(dst) as tmp:
-                    shutil.copyfile(src / "sequences" / slug / "failures.csv", tmp)
+                    shutil.copyfile(report, tmp)
             prep = prepare_sequences(cfg, [sfm_seq], src)[0]
             module, _ = load_module(ckpt)
             depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)
