@@ -290,20 +290,19 @@ def refuse_iteration(cfg: DictConfig, info, fold_dir: Path, it: int, sfm_seq, ou
             continue
         vdir = Path(out_root) / f"iteration={k}" / "sequences" / slug
         ckpt = it_dir / "checkpoints" / "last.ckpt"
+        src = None if prev is None else prev / f"iteration={k - 1}"  # the previous stage's iteration dir
+        prev_seq = None if src is None else src / "sequences" / slug
         # the previous stage's source too: a stage made after another one of iteration k-1 is made again
-        prev_summary = None if prev is None else prev / f"iteration={k - 1}" / "sequences" / slug / "summary.json"
         _reset_if_other_source(vdir, {"checkpoint": file_id(ckpt), "settings": settings,
                                       "sfm": sfm_fingerprint(sfm_seq),
-                                      "previous": None if prev_summary is None else file_id(prev_summary)})
+                                      "previous": None if prev_seq is None else file_id(prev_seq / "summary.json")})
         if not (vdir / "summary.json").is_file():
             log.info("%s: %s ran with other settings (%s); its last stage again into %s", sfm_seq.name, it_dir,
                      "; ".join(why), vdir)
-            src = None if prev is None else prev / f"iteration={k - 1}"
-            report = None if src is None else src / "sequences" / slug / "failures.csv"
-            if report is not None and src.parent != Path(out_root) and report.is_file():
+            if prev == Path(fold_dir) and (prev_seq / "failures.csv").is_file():  # a stage standing as trained
                 dst = Path(out_root) / f"iteration={k - 1}" / "sequences" / slug / "failures.csv"
                 with atomic_path(dst) as tmp:
-                    shutil.copyfile(report, tmp)
+                    shutil.copyfile(prev_seq / "failures.csv", tmp)
             prep = prepare_sequences(cfg, [sfm_seq], src)[0]
             module, _ = load_module(ckpt)
             depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)

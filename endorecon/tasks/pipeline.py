@@ -364,6 +364,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
     # 2. failure detection.
     t0 = time.perf_counter()
     flagged = np.zeros(n, bool)  # the checked frames flagged and the frames around them that take their verdict
+    kept_out = []  # left out by the previous iteration, passed this check, passed on anyway (failure.keep_excluded)
     report = detect_failures(depth, std, torch.from_numpy(sim)[:, None], torch.from_numpy(sim_valid)[:, None], K,
                              torch.from_numpy(poses), mask, sparse_flow_fn, _stage_cfg(cfg.failure))
     report.to_csv(out_dir / "failures.csv")
@@ -371,13 +372,12 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         # only every interval-th frame is checked; its neighbours within exclude_radius share its verdict
         radius = cfg.failure.get("exclude_radius")
         flagged[[f for f in report.excluded_frames(None if radius is None else int(radius)) if f < n]] = True
-    kept_out = []  # left out by the previous iteration, passed this check, passed on anyway (failure.keep_excluded)
-    if cfg.failure.enabled and excluded is not None and cfg.failure.get("keep_excluded", False):
-        kept_out = [int(f) for f in np.flatnonzero(excluded & ~flagged & registered)]
-        flagged |= excluded
-        if kept_out:
-            log.info("%s: frames %s passed this check but stay out of the next iteration (failure.keep_excluded)",
-                     seq.name, kept_out)
+        if excluded is not None and cfg.failure.get("keep_excluded", False):
+            kept_out = [int(f) for f in np.flatnonzero(excluded & ~flagged & registered)]
+            flagged |= excluded
+            if kept_out:
+                log.info("%s: frames %s passed this check but stay out of the next iteration "
+                         "(failure.keep_excluded)", seq.name, kept_out)
     times["failure_s"] = time.perf_counter() - t0
 
     # 2b. a range flagged in this and the previous iteration: SfM rerun on it, aligned poses spliced in.
