@@ -18,30 +18,25 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-STAGE_GROUPS = ("fusion", "failure", "pgo")  # the end-of-iteration stages' settings, which the table re-makes
-
-
-def trained_with_other_stage_settings(cfg, fold_dir: Path) -> list[str] | None:
-    """What differs, when ``fold_dir`` holds every iteration up to ``cfg.iteration``, each made with other
+def trained_with_other_stage_settings(cfg) -> list[str] | None:
+    """What differs, when the fold's run dir holds every iteration up to ``cfg.iteration``, each made with other
     settings of the end-of-iteration stages (fusion / failure / PGO) only: ``train.py`` refuses to reuse such a
     fold, while its ``full`` and ``iteration0`` rows can be made again with the current settings
     (:func:`endorecon.tasks.ablation.refuse_iteration`, ``*`` in the table).  None otherwise: incomplete, or
     another setting differs too."""
-    from omegaconf import OmegaConf
+    from endorecon.tasks.pipeline import REFINE_SETTINGS
+    from endorecon.tasks.train import is_complete, iteration_dir, recorded_differences
 
-    from endorecon.tasks.train import config_differences
-
-    diffs = []
-    for it in range(int(cfg.iteration) + 1):
-        it_dir = Path(fold_dir) / f"iteration={it}"
-        recorded = it_dir / ".hydra" / "config.yaml"
-        if not (it_dir / "metrics.json").is_file() or not recorded.is_file():
-            return None
-        d = config_differences(OmegaConf.load(recorded), cfg)
-        if any(x.split(".")[0] not in STAGE_GROUPS for x in d):
+    its = range(int(cfg.iteration) + 1)
+    if not all(is_complete(iteration_dir(cfg, it)) for it in its):
+        return None
+    diffs, recorded = [], 0
+    for _, _, d in recorded_differences(cfg):
+        recorded += 1
+        if any(x.split(".")[0] not in REFINE_SETTINGS for x in d):
             return None
         diffs += [x for x in d if x not in diffs]
-    return diffs or None
+    return diffs if recorded == len(its) and diffs else None
 
 
 def main(argv: list[str]) -> None:
@@ -50,7 +45,6 @@ def main(argv: list[str]) -> None:
     import endorecon.utils.resolvers  # noqa: F401
     from endorecon.tasks import ablation
     from endorecon.tasks.train import run as train_run
-    from endorecon.utils.errors import InputError
 
     folds, overrides = [0, 1, 2, 3], []
     for a in argv:
@@ -71,15 +65,13 @@ def main(argv: list[str]) -> None:
             fold_dir = Path(probe.paths.output_root) / "train" / f"fold={fold}"
             cfg = compose(config_name="train", overrides=[*overrides, f"fold={fold}", f"paths.run_dir='{fold_dir}'"])
             t = time.perf_counter()
-            try:
-                train_run(cfg)
-                print(f"fold {fold}: trained in {time.perf_counter() - t:.0f} s", flush=True)
-            except InputError:
-                diffs = trained_with_other_stage_settings(cfg, fold_dir)
-                if not diffs:
-                    raise
+            diffs = trained_with_other_stage_settings(cfg)
+            if diffs:  # train.py would refuse it; the table re-makes its last stages instead
                 print(f"fold {fold}: trained with other stage settings ({'; '.join(diffs)}); not trained again, "
                       f"its full and iteration0 rows are made again with the current ones (*)", flush=True)
+            else:
+                train_run(cfg)
+                print(f"fold {fold}: trained in {time.perf_counter() - t:.0f} s", flush=True)
             out = Path(cfg.paths.output_root) / "benchmarks" / "paper_table" / f"fold={fold}"
             rows += ablation.run_fold(cfg, fold_dir, out)
             table = sorted(kept + rows, key=lambda r: r["patient"])  # stable: each patient's variants in order

@@ -85,10 +85,9 @@ def config_differences(recorded: DictConfig, current: DictConfig) -> list[str]:
     return out
 
 
-def check_same_settings(cfg: DictConfig) -> None:
-    """Refuse to skip or resume iterations of this fold that were made with other settings: the run dir
-    (``outputs/train/fold=<k>``) does not encode the overrides, and their results would be returned as this
-    configuration's."""
+def recorded_differences(cfg: DictConfig):
+    """Yields ``(iteration, path, differences)`` for each iteration of this fold up to ``cfg.iteration`` that has a
+    recorded ``.hydra/config.yaml``: :func:`config_differences` between it and ``cfg``, one iteration at a time."""
     for it in range(int(cfg.iteration) + 1):
         path = iteration_dir(cfg, it) / ".hydra" / "config.yaml"
         if not path.is_file():
@@ -98,7 +97,14 @@ def check_same_settings(cfg: DictConfig) -> None:
         except Exception as e:  # noqa: BLE001 - any parse error: the file cannot vouch for the iteration
             raise InputError(f"unreadable config of a previous run ({type(e).__name__})", path,
                              f"delete {path.parents[1]} so that the iteration is made again") from e
-        diffs = config_differences(recorded, cfg)
+        yield it, path, config_differences(recorded, cfg)
+
+
+def check_same_settings(cfg: DictConfig) -> None:
+    """Refuse to skip or resume iterations of this fold that were made with other settings: the run dir
+    (``outputs/train/fold=<k>``) does not encode the overrides, and their results would be returned as this
+    configuration's."""
+    for it, path, diffs in recorded_differences(cfg):
         if diffs:
             shown = "; ".join(diffs[:6]) + (f"; and {len(diffs) - 6} more" if len(diffs) > 6 else "")
             raise InputError(

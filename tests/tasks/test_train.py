@@ -646,15 +646,15 @@ def test_paper_table_takes_a_fold_trained_with_other_stage_settings_as_it_is(deb
     spec = importlib.util.spec_from_file_location("paper_table", ROOT / "benchmarks" / "paper_table.py")
     pt = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(pt)
-    fold_dir, root = debug_run[0], debug_run[0].parents[2]
-    assert pt.trained_with_other_stage_settings(train_cfg(root, "fold=0", "iteration=1"), fold_dir) is None
+    root = debug_run[0].parents[2]
+    assert pt.trained_with_other_stage_settings(train_cfg(root, "fold=0", "iteration=1")) is None
     stage = train_cfg(root, "fold=0", "iteration=1", "failure.keep_excluded=false")
     with pytest.raises(InputError, match="other settings"):
         check_same_settings(stage)
-    assert pt.trained_with_other_stage_settings(stage, fold_dir) == ["failure.keep_excluded: True -> False"]
+    assert pt.trained_with_other_stage_settings(stage) == ["failure.keep_excluded: True -> False"]
     # a training setting differs too: the networks are not this configuration's, so the table must not go on
     both = train_cfg(root, "fold=0", "iteration=1", "failure.keep_excluded=false", "loss.sparse_flow=50")
-    assert pt.trained_with_other_stage_settings(both, fold_dir) is None
+    assert pt.trained_with_other_stage_settings(both) is None
     # an iteration the fold does not have yet: train.py must make it
     assert pt.trained_with_other_stage_settings(train_cfg(root, "fold=0", "iteration=2",
-                                                          "failure.keep_excluded=false"), fold_dir) is None
+                                                          "failure.keep_excluded=false")) is None
