@@ -274,7 +274,9 @@ def run_mapping(
         mask_path: one mask for all images (black = ignored), or None.
         attempt: hyperparameters: ``peak_threshold``, ``max_num_features``, ``overlap``, ``quadratic_overlap``,
             ``init_pair`` (fraction of the sequence where the initial pair starts, or null = COLMAP's choice),
-            ``init_gap`` (frames between the pair) and the mapper options of :func:`_mapping_options`.
+            ``init_gap`` (frames between the pair), ``seed`` (seeds COLMAP's random numbers: RANSAC in
+            matching and in mapping; unseeded, a run may land in another solution now and then, and with
+            ``num_threads=1`` a seeded one repeats bit for bit) and the mapper options of :func:`_mapping_options`.
         work_dir: holds ``database.db`` and ``sparse/``; cleared first.
         verbose: let COLMAP print its own log (else only errors).
     Returns:
@@ -302,6 +304,8 @@ def _run_mapping(image_dir, image_names, mask_path, K, attempt, work_dir: Path, 
     reader.camera_params = ",".join(f"{v:.10g}" for v in (Kc[0, 0], Kc[1, 1], Kc[0, 2], Kc[1, 2]))
     if mask_path is not None:
         reader.camera_mask_path = str(mask_path)
+    if "seed" in attempt:
+        pycolmap.set_random_seed(int(attempt["seed"]))
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = num_threads
     extraction.use_gpu = False
@@ -317,8 +321,11 @@ def _run_mapping(image_dir, image_names, mask_path, K, attempt, work_dir: Path, 
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = int(attempt.get("overlap", 10))
     pairing.quadratic_overlap = bool(attempt.get("quadratic_overlap", True))
+    verification = pycolmap.TwoViewGeometryOptions()
+    if "seed" in attempt:
+        verification.ransac.random_seed = int(attempt["seed"])
     pycolmap.match_sequential(str(db_path), matching_options=matching, pairing_options=pairing,
-                              device=pycolmap.Device.cpu)
+                              verification_options=verification, device=pycolmap.Device.cpu)
 
     db = pycolmap.Database.open(str(db_path))
     try:
