@@ -21,8 +21,9 @@ reported with the same residual statistics, on its mesh as the current fusion co
 (:func:`configured_mesh`: meshes of older runs get the configured boundary trim first).  A ``full`` or
 ``iteration0`` row whose training run used other fusion / failure / PGO settings is made again from
 that iteration's network with the current ones, after the earlier iterations' stages that differ as well
-(:func:`refuse_iteration`), and marked ``*`` in the table; the variant dirs record what they were made from
-(``source.json``) and are rebuilt when it changes.
+(:func:`refuse_iteration`), and marked ``*`` in the table; ``plain_fusion`` and ``no_failure_pgo`` then
+start from the previous stage as made again too, so that all three fuse from the same poses and left-out
+frames.  The variant dirs record what they were made from (``source.json``) and are rebuilt when it changes.
 """
 
 from __future__ import annotations
@@ -218,6 +219,7 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
 
         seq_source = {**source, "sfm": sfm_fingerprint(sfm_seq)}
         abs_rel = {}
+        start = prev  # the iteration dir the last stage starts from: as trained, or as made again for `full`
         for variant, it in (("full", last), ("iteration0", 0)):
             it_dir = fold_dir / f"iteration={it}"
             m = json.loads((it_dir / "metrics.json").read_text())
@@ -227,6 +229,8 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
             if diff:  # trained with other fusion / failure / PGO settings: its last stage again, as now set
                 ev = refuse_iteration(cfg, info, fold_dir, it, sfm_seq, out_dir / variant, diff)
                 rows.append({**_row(raw, variant, ev, abs_rel[variant]), "refused": diff})
+                if variant == "full":
+                    start = stage_start(fold_dir, it, settings, out_dir / variant)
                 continue
             # Evaluated here, not read from the run's metrics.json, so that every row is measured by the
             # current evaluator (the same one gives the same numbers; a changed one recomputes).
@@ -241,11 +245,15 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
             _, poses = read_poses_txt(src / "poses.txt")
             ev = pipeline.evaluate_against_ct(info.root, prep.seq, mesh, poses, out_dir / variant / slug / "evaluation")
             rows.append(_row(raw, variant, ev, abs_rel[variant]))
+        # The two ablations start from the same poses and left-out frames as `full`'s last stage did
+        if start != prev:
+            prep = prepare_sequences(cfg, [sfm_seq], start)[0]
+        start_id = None if start is None else file_id(start / "sequences" / slug / "summary.json")
         depth = std = colors = None
         for variant, changes in (("plain_fusion", {"fusion.name": "plain"}),
                                  ("no_failure_pgo", {"failure.enabled": False, "pgo.enabled": False})):
             vdir = out_dir / variant / slug
-            _reset_if_other_source(vdir, seq_source)
+            _reset_if_other_source(vdir, {**seq_source, "previous": start_id})
             if not (vdir / "summary.json").is_file() and depth is None:
                 depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)
             pipeline.refine_sequence(_variant_cfg(cfg, **changes), prep.seq, prep.cache, depth, std, colors,
@@ -265,6 +273,16 @@ def run_fold(cfg: DictConfig, fold_dir: Path, out_dir: Path) -> list[dict]:
     return rows
 
 
+def stage_start(fold_dir: Path, it: int, settings: dict, out_root: Path) -> Path | None:
+    """The iteration dir whose ``sequences/<slug>`` the end-of-iteration stage of iteration ``it`` starts from
+    when stages are made again with ``settings`` (:func:`refuse_iteration`): iteration ``it - 1`` as trained, or
+    as made again into ``out_root`` when its recorded settings differ.  None for iteration 0."""
+    if it == 0:
+        return None
+    trained = Path(fold_dir) / f"iteration={it - 1}"
+    return Path(out_root) / trained.name if settings_diff(recorded_settings(trained), settings) else trained
+
+
 def refuse_iteration(cfg: DictConfig, info, fold_dir: Path, it: int, sfm_seq, out_root: Path,
                      why: list[str]) -> dict:
     """The held-out sequence's end-of-iteration stage of ``fold_dir/iteration=<it>`` run again, from that
@@ -282,15 +300,13 @@ def refuse_iteration(cfg: DictConfig, info, fold_dir: Path, it: int, sfm_seq, ou
 
     slug = pipeline._slug(sfm_seq.name)
     settings = refine_settings(cfg)
-    prev = None  # the run dir whose iteration=<k-1>/sequences/<slug> the stage k starts from
     for k in range(it + 1):
         it_dir = Path(fold_dir) / f"iteration={k}"
         if k < it and not settings_diff(recorded_settings(it_dir), settings):
-            prev = Path(fold_dir)  # this iteration stands as trained
-            continue
+            continue  # this iteration stands as trained
         vdir = Path(out_root) / f"iteration={k}" / "sequences" / slug
         ckpt = it_dir / "checkpoints" / "last.ckpt"
-        src = None if prev is None else prev / f"iteration={k - 1}"  # the previous stage's iteration dir
+        src = stage_start(fold_dir, k, settings, out_root)  # the previous stage's iteration dir
         prev_seq = None if src is None else src / "sequences" / slug
         # the previous stage's source too: a stage made after another one of iteration k-1 is made again
         _reset_if_other_source(vdir, {"checkpoint": file_id(ckpt), "settings": settings,
@@ -299,7 +315,8 @@ def refuse_iteration(cfg: DictConfig, info, fold_dir: Path, it: int, sfm_seq, ou
         if not (vdir / "summary.json").is_file():
             log.info("%s: %s ran with other settings (%s); its last stage again into %s", sfm_seq.name, it_dir,
                      "; ".join(why), vdir)
-            if prev == Path(fold_dir) and (prev_seq / "failures.csv").is_file():  # a stage standing as trained
+            if src is not None and src.parent == Path(fold_dir) and (prev_seq / "failures.csv").is_file():
+                # a stage standing as trained
                 dst = Path(out_root) / f"iteration={k - 1}" / "sequences" / slug / "failures.csv"
                 with atomic_path(dst) as tmp:
                     shutil.copyfile(prev_seq / "failures.csv", tmp)
@@ -307,7 +324,6 @@ def refuse_iteration(cfg: DictConfig, info, fold_dir: Path, it: int, sfm_seq, ou
             module, _ = load_module(ckpt)
             depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)
             pipeline.refine_sequence(cfg, prep.seq, prep.cache, depth, std, colors, prep.excluded, vdir)
-        prev = Path(out_root)
     _, poses = read_poses_txt(vdir / "poses.txt")
     return pipeline.evaluate_against_ct(info.root, sfm_seq, configured_mesh(cfg, vdir / "mesh.ply", vdir), poses,
                                         vdir / "evaluation")

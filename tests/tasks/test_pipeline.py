@@ -296,6 +296,7 @@ def test_ablation_rows_of_each_held_out_video_use_that_videos_mesh(tmp_path, mon
             sd = it_dir / "sequences" / pipeline._slug(s.name)
             sd.mkdir(parents=True)
             (sd / "mesh.ply").write_text(s.name)
+            (sd / "summary.json").write_text("{}")
             write_poses_txt(sd / "poses.txt", ["f0"], np.eye(4)[None])
     seen = []
     monkeypatch.setattr(pipeline, "load_sequences", lambda c: types.SimpleNamespace(sequences=seqs, root=tmp_path))
@@ -319,6 +320,71 @@ def test_ablation_rows_of_each_held_out_video_use_that_videos_mesh(tmp_path, mon
     assert from_fold == [("p1/videoA", "p1/videoA")] * 2 + [("p1/videoB", "p1/videoB")] * 2
     abs_rel = {(r["sequence"], r["variant"]): r["abs_rel"] for r in rows}
     assert abs_rel[("p1/videoA", "full")] == 0.1 and abs_rel[("p1/videoB", "full")] is None
+
+
+@pytest.mark.parametrize("trained_as_now", [False, True])
+def test_ablations_start_where_the_full_rows_last_stage_started(tmp_path, monkeypatch, trained_as_now):
+    """plain_fusion and no_failure_pgo fuse from the poses and left-out frames `full`'s last stage started from:
+    for a fold trained with other failure settings, iteration 1's stage as made again for `full`, not the
+    training run's (which may fuse frames the current settings leave out); else the training run's."""
+    import json
+    import types
+    from pathlib import Path
+
+    import endorecon.data.dataset as ds
+    import endorecon.tasks.reconstruct as rc
+    import endorecon.tasks.train as tr
+    from endorecon.data.sequence import write_poses_txt
+    from endorecon.tasks import ablation as ab
+
+    cfg = OmegaConf.create({"fold": 1, "fusion": {"boundary_trim_rings": 0}, "pgo": {}, "adapt": {"enabled": False},
+                            "failure": {"enabled": True, "keep_excluded": True}})
+    old = OmegaConf.merge(cfg, {"failure": {"keep_excluded": False}})
+    fold_dir, out = tmp_path / "fold", tmp_path / "out"
+    seq = types.SimpleNamespace(patient=1, name="p1/seq_00")
+    slug = pipeline._slug(seq.name)
+    for it in range(3):
+        it_dir = fold_dir / f"iteration={it}"
+        (it_dir / ".hydra").mkdir(parents=True)
+        OmegaConf.save(cfg if trained_as_now else old, it_dir / ".hydra" / "config.yaml")
+        (it_dir / "metrics.json").write_text("{}")
+        (it_dir / "checkpoints").mkdir()
+        (it_dir / "checkpoints" / "last.ckpt").write_text(f"net {it}")
+        sd = it_dir / "sequences" / slug
+        sd.mkdir(parents=True)
+        for name in ("mesh.ply", "summary.json", "failures.csv"):
+            (sd / name).write_text("{}")
+        write_poses_txt(sd / "poses.txt", ["f0"], np.eye(4)[None])
+    started = {}
+
+    def refine(c, s, cache, d, st, col, exc, vdir):  # `cache` carries the dir the sequence was prepared from
+        started[Path(vdir)] = cache
+        Path(vdir).mkdir(parents=True, exist_ok=True)
+        write_poses_txt(Path(vdir) / "poses.txt", ["f0"], np.eye(4)[None])
+        (Path(vdir) / "summary.json").write_text("{}")
+
+    monkeypatch.setattr(pipeline, "load_sequences", lambda c: types.SimpleNamespace(sequences=[seq], root=tmp_path))
+    monkeypatch.setattr(pipeline, "run_sfm", lambda c, s, r: s)
+    monkeypatch.setattr(tr, "prepare_sequences",
+                        lambda c, s, p: [types.SimpleNamespace(seq=x, cache=p, excluded=None) for x in s])
+    monkeypatch.setattr(rc, "load_module", lambda p: (None, None))
+    monkeypatch.setattr(ds, "load_ground_truth",
+                        lambda root, p, n: types.SimpleNamespace(mesh_path="ct.ply", cam_from_world=np.eye(4)[None]))
+    monkeypatch.setattr(ab, "sfm_fingerprint", lambda s: "x")
+    monkeypatch.setattr(ab, "configured_mesh", lambda c, m, o: m)
+    monkeypatch.setattr(ab, "fuse_ground_truth", lambda *a: tmp_path / "gt.ply")
+    monkeypatch.setattr(pipeline, "infer_depth", lambda *a: (None, None, None))
+    monkeypatch.setattr(pipeline, "refine_sequence", refine)
+    monkeypatch.setattr(pipeline, "evaluate_against_ct", lambda *a: {})
+    rows = ab.run_fold(cfg, fold_dir, out)
+    assert {r["variant"]: bool(r.get("refused")) for r in rows}["full"] is not trained_as_now
+    start = fold_dir / "iteration=1" if trained_as_now else out / "full" / "iteration=1"
+    if not trained_as_now:
+        assert started[out / "full" / "iteration=2" / "sequences" / slug] == start
+    assert started[out / "plain_fusion" / slug] == start
+    assert started[out / "no_failure_pgo" / slug] == start
+    recorded = json.loads((out / "plain_fusion" / slug / "source.json").read_text())["previous"]
+    assert recorded["path"] == str((start / "sequences" / slug / "summary.json").resolve())
 
 
 def test_results_table_means_over_patients_and_quotes_the_csv(tmp_path):
