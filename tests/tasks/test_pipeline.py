@@ -266,6 +266,29 @@ def test_refused_stages_start_from_the_refused_previous_iteration(tmp_path, monk
     assert made == [stage(1), stage(2)]
 
 
+def _stub_fold_inputs(monkeypatch, tmp_path, seqs):
+    """ablation.run_fold's inputs stubbed: the held-out ``seqs`` (SfM as they are), a network, a CT per video;
+    a prepared sequence's ``cache`` is the iteration dir it was prepared from."""
+    import types
+
+    import endorecon.data.dataset as ds
+    import endorecon.tasks.reconstruct as rc
+    import endorecon.tasks.train as tr
+    from endorecon.tasks import ablation as ab
+
+    monkeypatch.setattr(pipeline, "load_sequences", lambda c: types.SimpleNamespace(sequences=seqs, root=tmp_path))
+    monkeypatch.setattr(pipeline, "run_sfm", lambda c, s, r: s)
+    monkeypatch.setattr(tr, "prepare_sequences",
+                        lambda c, s, p: [types.SimpleNamespace(seq=x, cache=p, excluded=None) for x in s])
+    monkeypatch.setattr(rc, "load_module", lambda p: (None, None))
+    monkeypatch.setattr(ds, "load_ground_truth",
+                        lambda root, p, n: types.SimpleNamespace(mesh_path="ct.ply", cam_from_world=np.eye(4)[None]))
+    monkeypatch.setattr(ab, "sfm_fingerprint", lambda s: "x")
+    monkeypatch.setattr(ab, "configured_mesh", lambda c, m, o: m)
+    monkeypatch.setattr(ab, "fuse_ground_truth", lambda *a: tmp_path / "gt.ply")
+    monkeypatch.setattr(pipeline, "infer_depth", lambda *a: (None, None, None))
+
+
 def test_ablation_rows_of_each_held_out_video_use_that_videos_mesh(tmp_path, monkeypatch):
     """Two held-out videos of one patient: the iteration dir's mesh.ply / poses.txt are the first video's copies,
     so each video's full / iteration0 row must read its own sequences/<slug>/ files."""
@@ -273,9 +296,6 @@ def test_ablation_rows_of_each_held_out_video_use_that_videos_mesh(tmp_path, mon
     import types
     from pathlib import Path
 
-    import endorecon.data.dataset as ds
-    import endorecon.tasks.reconstruct as rc
-    import endorecon.tasks.train as tr
     from endorecon.data.sequence import write_poses_txt
     from endorecon.tasks import ablation as ab
 
@@ -299,17 +319,7 @@ def test_ablation_rows_of_each_held_out_video_use_that_videos_mesh(tmp_path, mon
             (sd / "summary.json").write_text("{}")
             write_poses_txt(sd / "poses.txt", ["f0"], np.eye(4)[None])
     seen = []
-    monkeypatch.setattr(pipeline, "load_sequences", lambda c: types.SimpleNamespace(sequences=seqs, root=tmp_path))
-    monkeypatch.setattr(pipeline, "run_sfm", lambda c, s, r: s)
-    monkeypatch.setattr(tr, "prepare_sequences",
-                        lambda c, s, p: [types.SimpleNamespace(seq=x, cache=None, excluded=None) for x in s])
-    monkeypatch.setattr(rc, "load_module", lambda p: (None, None))
-    monkeypatch.setattr(ds, "load_ground_truth",
-                        lambda root, p, n: types.SimpleNamespace(mesh_path="ct.ply", cam_from_world=np.eye(4)[None]))
-    monkeypatch.setattr(ab, "sfm_fingerprint", lambda s: "x")
-    monkeypatch.setattr(ab, "configured_mesh", lambda c, m, o: m)
-    monkeypatch.setattr(ab, "fuse_ground_truth", lambda *a: tmp_path / "gt.ply")
-    monkeypatch.setattr(pipeline, "infer_depth", lambda *a: (None, None, None))
+    _stub_fold_inputs(monkeypatch, tmp_path, seqs)
     monkeypatch.setattr(pipeline, "refine_sequence",
                         lambda c, seq, cache, d, s, col, exc, vdir: write_poses_txt(Path(vdir) / "poses.txt", ["f0"],
                                                                                    np.eye(4)[None]))
@@ -331,9 +341,6 @@ def test_ablations_start_where_the_full_rows_last_stage_started(tmp_path, monkey
     import types
     from pathlib import Path
 
-    import endorecon.data.dataset as ds
-    import endorecon.tasks.reconstruct as rc
-    import endorecon.tasks.train as tr
     from endorecon.data.sequence import write_poses_txt
     from endorecon.tasks import ablation as ab
 
@@ -363,17 +370,7 @@ def test_ablations_start_where_the_full_rows_last_stage_started(tmp_path, monkey
         write_poses_txt(Path(vdir) / "poses.txt", ["f0"], np.eye(4)[None])
         (Path(vdir) / "summary.json").write_text("{}")
 
-    monkeypatch.setattr(pipeline, "load_sequences", lambda c: types.SimpleNamespace(sequences=[seq], root=tmp_path))
-    monkeypatch.setattr(pipeline, "run_sfm", lambda c, s, r: s)
-    monkeypatch.setattr(tr, "prepare_sequences",
-                        lambda c, s, p: [types.SimpleNamespace(seq=x, cache=p, excluded=None) for x in s])
-    monkeypatch.setattr(rc, "load_module", lambda p: (None, None))
-    monkeypatch.setattr(ds, "load_ground_truth",
-                        lambda root, p, n: types.SimpleNamespace(mesh_path="ct.ply", cam_from_world=np.eye(4)[None]))
-    monkeypatch.setattr(ab, "sfm_fingerprint", lambda s: "x")
-    monkeypatch.setattr(ab, "configured_mesh", lambda c, m, o: m)
-    monkeypatch.setattr(ab, "fuse_ground_truth", lambda *a: tmp_path / "gt.ply")
-    monkeypatch.setattr(pipeline, "infer_depth", lambda *a: (None, None, None))
+    _stub_fold_inputs(monkeypatch, tmp_path, [seq])
     monkeypatch.setattr(pipeline, "refine_sequence", refine)
     monkeypatch.setattr(pipeline, "evaluate_against_ct", lambda *a: {})
     rows = ab.run_fold(cfg, fold_dir, out)
