@@ -98,6 +98,13 @@ def _cfg(cfg_sfm) -> dict:
     out["clean"] = {**DEFAULTS["clean"], **(cfg.get("clean") or {})}
     if not out["attempts"]:
         raise InputError("sfm.attempts is empty", fix="list at least one hyperparameter set in conf/sfm/default.yaml")
+    # ``seed`` seeds every attempt that has none of its own; each attempt's record then holds it, so a changed
+    # seed runs the attempts again (and null changes nothing that was recorded before the key existed)
+    seed = out.pop("seed", None)
+    if seed is not None:
+        if isinstance(seed, bool) or not isinstance(seed, int):
+            raise InputError(f"sfm.seed must be an integer or null, got {seed!r}", fix="pass sfm.seed=0 (or null)")
+        out["attempts"] = [{"seed": seed, **a} for a in out["attempts"]]
     return out
 
 

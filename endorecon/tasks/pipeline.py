@@ -91,7 +91,10 @@ def sfm_cache_dir(cfg: DictConfig, data_root: Path | None) -> Path:
     root = Path(cfg.paths.cache_dir) / "sfm"
     resolved = str(Path(data_root).resolve()) if data_root is not None else "None"
     sfm = OmegaConf.to_container(cfg.sfm, resolve=True) if isinstance(cfg.sfm, DictConfig) else dict(cfg.sfm)
-    # COLMAP's log and thread count change nothing the cache keeps (train.py's settings check ignores them too)
+    # COLMAP's log and thread count change nothing the cache keeps (train.py's settings check ignores them too);
+    # an unset seed keys the cache as before the key existed
+    if sfm.get("seed", 0) is None:
+        sfm = {k: v for k, v in sfm.items() if k != "seed"}
     key = config_hash({k: v for k, v in sfm.items() if k not in SFM_NO_EFFECT}, stamp, resolved)
     if (root / key).is_dir():
         return root / key

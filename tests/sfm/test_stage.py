@@ -193,15 +193,24 @@ def test_rerun_segment(phantom, cfg, tmp_path):
 def test_seeded_attempts_repeat_bit_for_bit(phantom, cfg, tmp_path):
     # Unseeded, two runs here differ by up to 0.02 in the poses; a seed pins COLMAP's RANSAC in matching and mapping.
     _, seq, _ = phantom
-    seeded = OmegaConf.merge(cfg, {"num_threads": 1})
-    for attempt in seeded.attempts:
-        attempt.seed = 3
+    seeded = OmegaConf.merge(cfg, {"num_threads": 1, "seed": 3})
     a, b = (stage.load_result(stage.run(seeded, seq, tmp_path / name)) for name in ("a", "b"))
     assert a.registered.all()
     np.testing.assert_array_equal(a.cam_from_world, b.cam_from_world)
     np.testing.assert_array_equal(a.points_xyz, b.points_xyz)
     recorded = json.loads((tmp_path / "a" / "attempts.json").read_text())["attempts"][0]["params"]
     assert recorded["seed"] == 3
+
+
+def test_seed_goes_to_every_attempt_without_its_own():
+    attempts = [{"name": "a"}, {"name": "b", "seed": 7}]
+    got = stage._cfg({"seed": 3, "attempts": attempts})
+    assert [a.get("seed") for a in got["attempts"]] == [3, 7] and "seed" not in got
+    unseeded = stage._cfg({"seed": None, "attempts": attempts})
+    assert unseeded == stage._cfg({"attempts": attempts})  # null records nothing: earlier runs stay valid
+    for bad in ("3", 1.5, True):
+        with pytest.raises(InputError, match="sfm.seed"):
+            stage._cfg({"seed": bad, "attempts": attempts})
 
 
 # ------------------------------------------------------------------ bad input (no SfM needed)

@@ -155,6 +155,11 @@ def test_sfm_cache_is_found_through_a_symlinked_data_root(tmp_path):
     quiet = OmegaConf.create({**OmegaConf.to_container(cfg), "sfm": {"max_size": 960, "num_threads": 1,
                                                                      "colmap_verbose": True}})
     assert sfm_cache_dir(quiet, data) == real
+    # an unset seed (a key added since) keys as before it existed; a seed is another model
+    def seeded(seed):
+        return OmegaConf.create({**OmegaConf.to_container(cfg), "sfm": {**cfg.sfm, "seed": seed}})
+
+    assert sfm_cache_dir(seeded(None), data) == real and sfm_cache_dir(seeded(0), data) != real
     legacy = tmp_path / "cache" / "sfm" / config_hash(cfg.sfm, '{"patients": 1}', str(tmp_path / "link" / "phantom"))
     legacy.mkdir(parents=True)
     assert sfm_cache_dir(cfg, tmp_path / "link" / "phantom") == legacy
