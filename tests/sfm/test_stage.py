@@ -30,6 +30,7 @@ def phantom(tmp_path_factory):
 def cfg():
     c = OmegaConf.load(CONF)
     c.min_points = 50
+    c.seed = 3  # unseeded, the sparse points' median distance to the mesh varied 0.28-0.44 mm over 12 runs (bar: 0.5)
     return c
 
 
@@ -193,7 +194,7 @@ def test_rerun_segment(phantom, cfg, tmp_path):
 def test_seeded_attempts_repeat_bit_for_bit(phantom, cfg, tmp_path):
     # Unseeded, two runs here differ by up to 0.02 in the poses; a seed pins COLMAP's RANSAC in matching and mapping.
     _, seq, _ = phantom
-    seeded = OmegaConf.merge(cfg, {"num_threads": 1, "seed": 3})
+    seeded = OmegaConf.merge(cfg, {"num_threads": 1})
     a, b = (stage.load_result(stage.run(seeded, seq, tmp_path / name)) for name in ("a", "b"))
     assert a.registered.all()
     np.testing.assert_array_equal(a.cam_from_world, b.cam_from_world)
@@ -261,10 +262,15 @@ def test_cli_bad_input(tmp_path, capsys):
     assert len(seq) == 4
 
 
-def test_cli_resumes_complete_output(solved, phantom, capsys):
+def test_cli_resumes_complete_output(solved, phantom, capsys, monkeypatch):
     out, res, _ = solved
+
+    def boom(*a, **k):
+        raise AssertionError("SfM ran again")
+
+    monkeypatch.setattr(colmap, "run_mapping", boom)
     seq_dir = phantom[1].frame_paths[0].parents[1]
-    assert main([f"input={seq_dir}", f"out={out}"]) == 0
+    assert main([f"input={seq_dir}", f"out={out}", "sfm.seed=3"]) == 0
     assert f"{int(res.registered.sum())}/{len(res)} frames registered" in capsys.readouterr().err.replace("\n", "")
 
 
