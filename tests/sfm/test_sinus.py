@@ -20,8 +20,9 @@ def test_sinus_example_all_registered_and_motion_agrees(tmp_path):
 
     ref = load_original(SINUS)
     cfg = OmegaConf.load(ROOT / "conf" / "sfm" / "default.yaml")
-    # Unseeded, about one run in fifty lands in a poorer solution here (centre error 0.026 instead of
-    # 0.007-0.010): the test pins COLMAP's random numbers and threads so that it measures one repeatable run.
+    # Unseeded, a run now and then lands in a poorer solution here (centre error 0.026 instead of 0.007-0.010:
+    # 1 of 106 runs on the dev machine, and stop 43's CI run): the test pins COLMAP's random numbers and threads
+    # so that it measures one repeatable run.
     cfg.num_threads = 1
     cfg.seed = 0
     res = stage.load_result(stage.run(cfg, ref, tmp_path / "sfm"))
