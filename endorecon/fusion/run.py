@@ -32,7 +32,7 @@ FUSION_DEFAULTS = dict(
     block_count=20000, mesh_weight_threshold=1.0, device="auto", min_component_fraction=0.0,
     boundary_trim_rings=0, mask_erode_px=0, c1=0.1, c2=0.8, trunc_std_multiplier=3.0, trunc_min_voxels=6.0,
     trunc_max_voxels=24.0, std_mode="propagate", compile=False, trunc_voxels=6.0, block_search="sampled",
-    free_space_max_fraction=None, free_space_tau=0.1, max_std_ratio=None,
+    free_space_max_fraction=None, free_space_tau=0.1, max_std_ratio=None, max_nearest_view_ratio=None,
 )
 
 
@@ -86,6 +86,7 @@ def build_fusion(cfg_fusion, median_depth: float | None = None) -> AdaptiveTSDF 
         block_search=str(get("block_search")),
         free_space_max_fraction=get("free_space_max_fraction"),
         free_space_tau=get("free_space_tau"),
+        max_nearest_view_ratio=get("max_nearest_view_ratio"),
     )
     if name == "adaptive":
         return AdaptiveTSDF(

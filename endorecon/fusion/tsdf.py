@@ -27,7 +27,8 @@ import open3d.core as o3c
 import torch
 from torch.utils.dlpack import from_dlpack
 
-from endorecon.fusion.freespace import check_free_space_params, drop_seen_through, free_space_counts, seen_through_fraction
+from endorecon.fusion.freespace import (check_free_space_params, check_nearest_view_ratio, drop_far_only, drop_seen_through,
+                                       seen_through_fraction, surface_views)
 from endorecon.fusion.kernel import clean_frame, erode_mask, integrate_blocks, integrate_blocks_, local_voxel_offsets
 from endorecon.fusion.ply import write_mesh_ply
 from endorecon.geometry import invert_pose, unproject
@@ -236,14 +237,17 @@ class _TSDFBase:
     def __init__(self, voxel_size: float, block_resolution: int = 8, block_count: int = 20000,
                  depth_max: float = float("inf"), mesh_weight_threshold: float = 1.0, device: str = "CPU:0",
                  min_component_fraction: float = 0.0, boundary_trim_rings: int = 0, mask_erode_px: int = 0,
-                 block_search: str = "sampled", free_space_max_fraction: float | None = None, free_space_tau: float = 0.1):
+                 block_search: str = "sampled", free_space_max_fraction: float | None = None, free_space_tau: float = 0.1,
+                 max_nearest_view_ratio: float | None = None):
         self.boundary_trim_rings = _check_trim_rings(boundary_trim_rings)  # before any work, not at saving
         self.free_space_max_fraction, self.free_space_tau = check_free_space_params(free_space_max_fraction, free_space_tau)
+        self.max_nearest_view_ratio = check_nearest_view_ratio(max_nearest_view_ratio)
         # the fused frames' full depth (cut-off included: far depth still says "free space up to here"),
-        # kept only for the free-space check of the saved mesh
+        # kept only for the view checks of the saved mesh (free space, nearest view)
         self._seen: list[tuple[torch.Tensor, torch.Tensor | None, np.ndarray, np.ndarray]] = []
         self.last_free_space: dict | None = None
         self.last_uncertain: dict | None = None
+        self.last_far_only: dict | None = None
         if block_search not in BLOCK_SEARCHES:
             raise InputError(f"fusion: block_search must be one of {', '.join(BLOCK_SEARCHES)}, got {block_search!r}",
                              fix="set fusion.block_search to every_pixel (every band voxel of a frame is updated) or sampled")
@@ -366,11 +370,13 @@ class _TSDFBase:
 
         With ``free_space_max_fraction`` set, surface that the fused frames see through goes too
         (:meth:`drop_free_space`); with ``max_std_ratio`` set (adaptive fusion), surface whose fused std is over
-        that many times the median (:meth:`drop_uncertain`); then pieces under ``min_component_fraction`` again.
-        Only the saved product is trimmed and checked: :meth:`extract_mesh` (simulated depth, failure detection)
-        keeps it all."""
+        that many times the median (:meth:`drop_uncertain`); with ``max_nearest_view_ratio`` set, surface that no
+        fused frame sees nearer than that many times their median depth (:meth:`drop_far_only`; after the
+        uncertainty trim, whose median std it would otherwise lower); then pieces under
+        ``min_component_fraction`` again.  Only the saved product is trimmed and checked: :meth:`extract_mesh`
+        (simulated depth, failure detection) keeps it all."""
         mesh = self.drop_free_space(trim_boundary(self.extract_mesh(), self.boundary_trim_rings))
-        mesh = self.drop_uncertain(mesh)
+        mesh = self.drop_far_only(self.drop_uncertain(mesh))
         # trimming and the free-space check can split pieces off the surface: the size rule holds for the saved mesh too
         mesh = drop_small_components(mesh, self.min_component_fraction)
         path = Path(path)
@@ -379,14 +385,15 @@ class _TSDFBase:
             raise InputError("fusion left no surface to save: no voxel was seen by fusion.mesh_weight_threshold "
                              "frames with usable depth and std (or the trims removed it all)", path,
                              "check the depth / std maps and the frames' masks, lower fusion.mesh_weight_threshold, "
-                             "or relax fusion.free_space_max_fraction / fusion.max_std_ratio")
+                             "or relax fusion.free_space_max_fraction / fusion.max_std_ratio / "
+                             "fusion.max_nearest_view_ratio")
         with atomic_path(path) as tmp:
             write_mesh_ply(tmp, mesh, boundary_trim_rings=self.boundary_trim_rings)
         return path
 
     def _remember(self, depth: torch.Tensor, mask: torch.Tensor | None, K: np.ndarray, T: np.ndarray,
                   std: torch.Tensor | None = None) -> None:
-        if self.free_space_max_fraction is not None:
+        if self.free_space_max_fraction is not None or self.max_nearest_view_ratio is not None:
             # the caller may reuse its arrays; a frame without a mask keeps every pixel (so that the others' masks
             # still count in the free-space check)
             keep = torch.ones_like(depth, dtype=torch.bool) if mask is None else mask.clone()
@@ -413,12 +420,7 @@ class _TSDFBase:
         n_tri = int(mesh.triangle.indices.shape[0])
         if n_tri == 0:
             return mesh
-        pos = _torch_view(mesh.vertex.positions).to(torch.float64)
-        depth = torch.stack([d for d, _, _, _ in self._seen])
-        mask = torch.stack([m for _, m, _, _ in self._seen])
-        K = torch.as_tensor(np.stack([k for _, _, k, _ in self._seen]))
-        T = torch.as_tensor(np.stack([t for _, _, _, t in self._seen]))
-        on, through = free_space_counts(pos, depth, K, T, mask, self.free_space_tau)
+        on, through, _ = self._surface_views(mesh)
         frac = seen_through_fraction(on, through)
         out = drop_seen_through(mesh, frac, self.free_space_max_fraction)
         left = int(out.triangle.indices.shape[0]) if "indices" in out.triangle else 0
@@ -428,6 +430,38 @@ class _TSDFBase:
                      "that have them in view; %d frames fused)", n_tri - left, n_tri, 100 * self.free_space_max_fraction,
                      len(self._seen))
         return out
+
+    def _surface_views(self, mesh: o3d.t.geometry.TriangleMesh) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:func:`~endorecon.fusion.freespace.surface_views` of the mesh's vertices in the remembered frames."""
+        pos = _torch_view(mesh.vertex.positions).to(torch.float64)
+        depth = torch.stack([d for d, _, _, _ in self._seen])
+        mask = torch.stack([m for _, m, _, _ in self._seen])
+        K = torch.as_tensor(np.stack([k for _, _, k, _ in self._seen]))
+        T = torch.as_tensor(np.stack([t for _, _, _, t in self._seen]))
+        return surface_views(pos, depth, K, T, mask, self.free_space_tau)
+
+    def median_seen_depth(self) -> float:
+        """Median of the remembered frames' finite, positive depth inside their masks (NaN when none)."""
+        vals = [d[m & torch.isfinite(d) & (d > 0)] for d, m, _, _ in self._seen]
+        vals = torch.cat(vals) if vals else torch.zeros(0)
+        return float(vals.median()) if vals.numel() else float("nan")
+
+    def drop_far_only(self, mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.TriangleMesh:
+        """``mesh`` without the surface that no fused frame sees nearer than ``max_nearest_view_ratio`` x the fused
+        frames' median depth (:func:`~endorecon.fusion.freespace.drop_far_only`; "on its surface" within
+        ``free_space_tau``); unchanged when the check is off.  What it removed is in ``self.last_far_only`` and
+        the log."""
+        if self.max_nearest_view_ratio is None or not self._seen or "indices" not in mesh.triangle \
+                or mesh.triangle.indices.shape[0] == 0:
+            return mesh
+        _, _, nearest = self._surface_views(mesh)
+        mesh, self.last_far_only = drop_far_only(mesh, nearest, self.median_seen_depth(), self.max_nearest_view_ratio)
+        f = self.last_far_only
+        if f and f["removed"]:
+            log.info("nearest-view check: %d of %d triangles removed (no fused frame sees them nearer than %.3g = "
+                     "%.3g x the median depth %.3g)", f["removed"], f["triangles"], f["threshold"], f["ratio"],
+                     f["median_depth"])
+        return mesh
 
 
 class AdaptiveTSDF(_TSDFBase):
@@ -460,6 +494,8 @@ class AdaptiveTSDF(_TSDFBase):
         free_space_tau: relative depth tolerance of that check (:mod:`endorecon.fusion.freespace`).
         max_std_ratio: the saved mesh loses surface whose fused std exceeds this many times the mesh's median
             (:func:`drop_uncertain`); None: all kept.
+        max_nearest_view_ratio: the saved mesh loses surface that no fused frame sees nearer than this many times
+            the fused frames' median depth (:meth:`drop_far_only`); None: no check.
     """
 
     attributes = ("tsdf", "weight", "color", "std")
@@ -471,11 +507,11 @@ class AdaptiveTSDF(_TSDFBase):
                  std_mode: str = "propagate", compile: bool = False, device: str = "CPU:0",
                  min_component_fraction: float = 0.0, boundary_trim_rings: int = 0, mask_erode_px: int = 0,
                  block_search: str = "sampled", free_space_max_fraction: float | None = None, free_space_tau: float = 0.1,
-                 max_std_ratio: float | None = None):
+                 max_std_ratio: float | None = None, max_nearest_view_ratio: float | None = None):
         self.max_std_ratio = check_max_std_ratio(max_std_ratio)  # before any work, not at saving
         super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
                          min_component_fraction, boundary_trim_rings, mask_erode_px, block_search,
-                         free_space_max_fraction, free_space_tau)
+                         free_space_max_fraction, free_space_tau, max_nearest_view_ratio)
         if not (0 < c1 <= c2 <= 1):
             raise InputError(f"fusion: need 0 < c1 <= c2 <= 1, got c1={c1}, c2={c2}", fix="fix fusion.c1 / fusion.c2")
         if not (0 < trunc_min_voxels <= trunc_max_voxels):
@@ -627,10 +663,10 @@ class PlainTSDF(_TSDFBase):
                  block_resolution: int = 8, block_count: int = 20000, mesh_weight_threshold: float = 1.0,
                  device: str = "CPU:0", min_component_fraction: float = 0.0, boundary_trim_rings: int = 0,
                  mask_erode_px: int = 0, block_search: str = "sampled", free_space_max_fraction: float | None = None,
-                 free_space_tau: float = 0.1):
+                 free_space_tau: float = 0.1, max_nearest_view_ratio: float | None = None):
         super().__init__(voxel_size, block_resolution, block_count, depth_max, mesh_weight_threshold, device,
                          min_component_fraction, boundary_trim_rings, mask_erode_px, block_search,
-                         free_space_max_fraction, free_space_tau)
+                         free_space_max_fraction, free_space_tau, max_nearest_view_ratio)
         if not trunc_voxels > 0:
             raise InputError(f"fusion: trunc_voxels must be > 0, got {trunc_voxels}")
         self.trunc_voxels = float(trunc_voxels)

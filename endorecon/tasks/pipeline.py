@@ -433,6 +433,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
     volume.save_mesh(out_dir / "mesh.ply")
     free_space = getattr(volume, "last_free_space", None)  # what the free-space check removed from the saved mesh (None: off)
     uncertain = getattr(volume, "last_uncertain", None)  # what the uncertainty trim removed (None: off)
+    far_only = getattr(volume, "last_far_only", None)  # what the nearest-view check removed (None: off)
     sim, sim_valid = render_simulated(volume.extract_mesh(), seq, poses)
     save_simulated(out_dir / "simulated_depth.npz", sim, sim_valid)
     times["fusion2_s"] = time.perf_counter() - t0
@@ -452,6 +453,7 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         resfm=resfm_info,
         free_space=free_space,
         uncertain=uncertain,
+        far_only=far_only,
         times=times,
         sfm_fingerprint=sfm_fingerprint(seq),  # the next iteration checks its SfM against these poses
     )

@@ -518,6 +518,7 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         f"- dense PGO: {_pgo_line(summary.get('pgo'))}",
         f"- free-space check: {_free_space_line(summary.get('free_space'))}",
         f"- uncertainty trim: {_uncertain_line(summary.get('uncertain'), (cfg.get('fusion') or {}).get('name') if cfg is not None else None)}",
+        f"- nearest-view check: {_far_only_line(summary.get('far_only'))}",
         "",
         "| stage | time (s) | |",
         "| --- | ---: | --- |",
@@ -541,6 +542,14 @@ def _free_space_line(fs) -> str:
     share = fs["removed"] / fs["triangles"] if fs.get("triangles") else 0.0
     return (f"{fs['removed']} of {fs['triangles']} triangles ({100 * share:.1f} %) removed: surface that most of the "
             f"{fs['frames']} fused frames see through")
+
+
+def _far_only_line(f) -> str:
+    if not isinstance(f, dict):
+        return "off (fusion.max_nearest_view_ratio=null) or not recorded"
+    share = f["removed"] / f["triangles"] if f.get("triangles") else 0.0
+    return (f"{f['removed']} of {f['triangles']} triangles ({100 * share:.1f} %) removed: surface no fused frame sees "
+            f"nearer than {f.get('ratio', float('nan')):.3g}x their median depth")
 
 
 def _uncertain_line(u, fusion_name: str | None = None) -> str:

@@ -722,7 +722,7 @@ def test_counts_check_their_inputs(bad):
     args = dict(points=torch.zeros(4, 3, dtype=torch.float64), depth=torch.ones(1, H, W), K=torch.as_tensor(K),
                 cam_from_world=torch.eye(4, dtype=torch.float64)[None], mask=None, tau=0.1)
     args.update(bad)
-    with pytest.raises(InputError, match="free space"):
+    with pytest.raises(InputError, match="surface views"):
         free_space_counts(**args)
 
 
