@@ -361,6 +361,9 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     rec_summary = json.loads((run_dir / "reconstruction/summary.json").read_text())
     assert rec_summary["free_space"]["triangles"] > 0 and rec_summary["uncertain"]["triangles"] > 0
     assert re.search(r"uncertainty trim: \d+ of \d+ triangles \([\d.]+ %\) removed: fused std over 2x", report)  # on by default
+    assert rec_summary["far_only"]["triangles"] > 0 and rec_summary["far_only"]["ratio"] == 1.4  # on by default
+    assert re.search(r"nearest-view check: \d+ of \d+ triangles \([\d.]+ %\) removed: surface no fused frame sees "
+                     r"nearer than 1.4x", report)
     first = json.loads((run_dir / "timings.json").read_text())["stages"]
     assert not any(s["skipped"] for s in first.values())
     mesh_bytes = (run_dir / "mesh.ply").read_bytes()
@@ -393,10 +396,11 @@ def test_video_end_to_end_and_resume(phantom_video, tiny_ckpt, tmp_path, monkeyp
     monkeypatch.setattr(R.pipeline, "fuse_sequence", fuse)
     monkeypatch.setattr(endorecon.pgo, "optimize_poses", pgo)
     R.run(recon_cfg(run_dir, f"input={video}", f"intrinsics={camera}", f"ckpt={tiny_ckpt}", "sfm.allow_partial=true",
-                    "fusion.mask_erode_px=4", "fusion.max_std_ratio=3"))
+                    "fusion.mask_erode_px=4", "fusion.max_std_ratio=3", "fusion.max_nearest_view_ratio=null"))
     third = json.loads((run_dir / "timings.json").read_text())["stages"]
     assert re.search(r"uncertainty trim: \d+ of \d+ triangles \([\d.]+ %\) removed: fused std over 3x the mesh's median",
                      (run_dir / "report.md").read_text())
+    assert "nearest-view check: off (fusion.max_nearest_view_ratio=null)" in (run_dir / "report.md").read_text()
     assert third["adaptation"]["skipped"] and third["inference"]["skipped"]
     assert not third["failure detection + PGO + fusion"]["skipped"]
     assert (run_dir / "mesh.ply").read_bytes() != mesh_bytes
