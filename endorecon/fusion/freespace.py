@@ -30,7 +30,7 @@ import open3d.core as o3c
 import torch
 
 from endorecon.geometry import project, transform_points
-from endorecon.utils.errors import InputError
+from endorecon.utils.errors import InputError, optional_number_above
 
 __all__ = ["free_space_counts", "surface_views", "seen_through_fraction", "drop_seen_through", "check_free_space_params",
            "check_nearest_view_ratio", "drop_far_only"]
@@ -147,17 +147,9 @@ def drop_seen_through(mesh: o3d.t.geometry.TriangleMesh, fraction: torch.Tensor 
 
 def check_nearest_view_ratio(ratio) -> float | None:
     """``fusion.max_nearest_view_ratio``: None (no check) or a finite number > 0."""
-    if ratio is None:
-        return None
-    try:
-        ok = not isinstance(ratio, bool) and np.isfinite(float(ratio)) and float(ratio) > 0.0
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise InputError(f"fusion: max_nearest_view_ratio must be a number > 0 or null, got {ratio!r}",
-                         fix="set fusion.max_nearest_view_ratio=null (keep surface seen only from far) or e.g. 1.4 "
-                             "(drop surface no fused frame sees nearer than 1.4x their median depth)")
-    return float(ratio)
+    return optional_number_above(ratio, "fusion: max_nearest_view_ratio", 0.0,
+                                 "set fusion.max_nearest_view_ratio=null (keep surface seen only from far) or e.g. 1.4 "
+                                 "(drop surface no fused frame sees nearer than 1.4x their median depth)")
 
 
 def drop_far_only(mesh: o3d.t.geometry.TriangleMesh, nearest: torch.Tensor | np.ndarray, median_depth: float,

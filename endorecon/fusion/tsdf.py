@@ -32,7 +32,7 @@ from endorecon.fusion.freespace import (check_free_space_params, check_nearest_v
 from endorecon.fusion.kernel import clean_frame, erode_mask, integrate_blocks, integrate_blocks_, local_voxel_offsets
 from endorecon.fusion.ply import write_mesh_ply
 from endorecon.geometry import invert_pose, unproject
-from endorecon.utils.errors import InputError
+from endorecon.utils.errors import InputError, optional_number_above
 from endorecon.utils.io import atomic_path
 
 __all__ = ["AdaptiveTSDF", "PlainTSDF", "pixel_band_blocks", "resolve_device"]
@@ -150,17 +150,9 @@ def trim_boundary(mesh: o3d.t.geometry.TriangleMesh, rings: int) -> o3d.t.geomet
 
 def check_max_std_ratio(ratio) -> float | None:
     """``fusion.max_std_ratio``: None (no uncertainty trim) or a number > 1 (at 1 or below half the mesh would go)."""
-    if ratio is None:
-        return None
-    try:
-        ok = not isinstance(ratio, bool) and float(ratio) > 1.0 and np.isfinite(float(ratio))
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise InputError(f"fusion: max_std_ratio must be a number > 1 or null, got {ratio!r}",
-                         fix="set fusion.max_std_ratio=null (keep all surface) or e.g. 2 (drop surface whose fused std is "
-                             "over twice the mesh's median)")
-    return float(ratio)
+    return optional_number_above(ratio, "fusion: max_std_ratio", 1.0,
+                                 "set fusion.max_std_ratio=null (keep all surface) or e.g. 2 (drop surface whose fused "
+                                 "std is over twice the mesh's median)")
 
 
 def drop_uncertain(mesh: o3d.t.geometry.TriangleMesh, max_std_ratio: float | None

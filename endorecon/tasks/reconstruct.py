@@ -536,20 +536,22 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
     return out / "report.md"
 
 
+def _removed(info: dict, why: str) -> str:
+    """``"<n> of <m> triangles (<p> %) removed: <why>"`` of a saved-mesh check's record."""
+    share = info["removed"] / info["triangles"] if info.get("triangles") else 0.0
+    return f"{info['removed']} of {info['triangles']} triangles ({100 * share:.1f} %) removed: {why}"
+
+
 def _free_space_line(fs) -> str:
     if not isinstance(fs, dict):
         return "off (fusion.free_space_max_fraction=null) or not recorded"
-    share = fs["removed"] / fs["triangles"] if fs.get("triangles") else 0.0
-    return (f"{fs['removed']} of {fs['triangles']} triangles ({100 * share:.1f} %) removed: surface that most of the "
-            f"{fs['frames']} fused frames see through")
+    return _removed(fs, f"surface that most of the {fs['frames']} fused frames see through")
 
 
 def _far_only_line(f) -> str:
     if not isinstance(f, dict):
         return "off (fusion.max_nearest_view_ratio=null) or not recorded"
-    share = f["removed"] / f["triangles"] if f.get("triangles") else 0.0
-    return (f"{f['removed']} of {f['triangles']} triangles ({100 * share:.1f} %) removed: surface no fused frame sees "
-            f"nearer than {f.get('ratio', float('nan')):.3g}x their median depth")
+    return _removed(f, f"surface no fused frame sees nearer than {f.get('ratio', float('nan')):.3g}x their median depth")
 
 
 def _uncertain_line(u, fusion_name: str | None = None) -> str:
@@ -557,10 +559,7 @@ def _uncertain_line(u, fusion_name: str | None = None) -> str:
         if fusion_name == "plain":
             return "none (plain TSDF fusion carries no std)"
         return "off (fusion.max_std_ratio=null): all fused surface kept, its std in the mesh"
-    share = u["removed"] / u["triangles"] if u.get("triangles") else 0.0
-    ratio = u.get("ratio", float("nan"))
-    return (f"{u['removed']} of {u['triangles']} triangles ({100 * share:.1f} %) removed: fused std over {ratio:.3g}x "
-            f"the mesh's median")
+    return _removed(u, f"fused std over {u.get('ratio', float('nan')):.3g}x the mesh's median")
 
 
 def _pgo_line(pgo: dict | None) -> str:

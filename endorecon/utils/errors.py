@@ -7,6 +7,7 @@ print these as one clean message (no traceback) and exit with status 2.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 
@@ -33,3 +34,17 @@ class InputError(EndoreconError, ValueError):
         if fix:
             msg += f"\n  fix: {fix}"
         super().__init__(msg)
+
+
+def optional_number_above(value, key: str, lower: float, fix: str) -> float | None:
+    """A setting that is null or a finite number above ``lower``: None or the float; else an :class:`InputError`
+    naming ``key`` (booleans, which YAML makes of ``yes``/``no``, are not numbers here)."""
+    if value is None:
+        return None
+    try:
+        ok = not isinstance(value, bool) and math.isfinite(float(value)) and float(value) > lower
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(f"{key} must be a number > {lower:g} or null, got {value!r}", fix=fix)
+    return float(value)

@@ -68,6 +68,19 @@ def sphere_depth_inside(T: np.ndarray, radius: float) -> np.ndarray:
     return (-b + np.sqrt(b * b - 4 * a * c)) / (2 * a)  # far root: the wall in front of the camera
 
 
+def saved_per_setting(cls, voxel, depths, stds, poses, tmp_path, key, values):
+    """Fuse the frames once per value of the volume setting ``key``: the saved and the extracted meshes' vertices
+    per value, and the last volume."""
+    kw = {"compile": False} if cls is AdaptiveTSDF else {}
+    saved, extracted = {}, {}
+    for value in values:
+        vol = cls(voxel, **{key: value}, **kw)
+        integrate_all(vol, depths, stds, poses)
+        saved[value] = read_mesh_ply(vol.save_mesh(tmp_path / f"mesh_{key}_{value}.ply")).vertex.positions.numpy()
+        extracted[value] = vol.extract_mesh().vertex.positions.numpy()
+    return saved, extracted, vol
+
+
 def integrate_all(vol, depths, stds, poses, colors=None, masks=None):
     for i, (d, s, T) in enumerate(zip(depths, stds, poses)):
         col = np.full((H, W, 3), 0.5, np.float32) if colors is None else colors[i]
@@ -751,13 +764,9 @@ def test_saved_mesh_loses_surface_the_other_frames_see_through(cls, tmp_path):
     depths[0][20:30, 30:40] = 0.6
     stds = [np.full((H, W), 0.2 * voxel) for _ in poses]
     kw = {"compile": False} if cls is AdaptiveTSDF else {}
-    saved = {}
+    saved, extracted, vol = saved_per_setting(cls, voxel, depths, stds, poses, tmp_path, "free_space_max_fraction", (None, 0.5))
     for check in (None, 0.5):
-        vol = cls(voxel, free_space_max_fraction=check, **kw)
-        integrate_all(vol, depths, stds, poses)
-        saved[check] = read_mesh_ply(vol.save_mesh(tmp_path / f"mesh_{check}.ply")).vertex.positions.numpy()
-        extracted = vol.extract_mesh().vertex.positions.numpy()
-        assert (np.abs(extracted[:, 2] - 0.6) < 0.1).sum() > 10
+        assert (np.abs(extracted[check][:, 2] - 0.6) < 0.1).sum() > 10
     assert (np.abs(saved[None][:, 2] - 0.6) < 0.1).sum() > 10
     assert (np.abs(saved[0.5][:, 2] - 0.6) < 0.1).sum() == 0
     assert vol.last_free_space["removed"] > 0 and vol.last_free_space["frames"] == 4

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from endorecon.fusion import AdaptiveTSDF, PlainTSDF, build_fusion, drop_far_only, read_mesh_ply, surface_views
+from endorecon.fusion import AdaptiveTSDF, PlainTSDF, build_fusion, drop_far_only, surface_views
 from endorecon.tasks.reconstruct import _far_only_line
 from endorecon.utils.errors import InputError
-from test_fusion import H, K, W, _grid_mesh, integrate_all, plane_depth
+from test_fusion import H, K, W, _grid_mesh, plane_depth, saved_per_setting
 
 
 def _camera_at_z(c: float) -> torch.Tensor:
@@ -75,12 +75,9 @@ def test_saved_mesh_loses_surface_seen_only_from_far(cls, tmp_path):
         depths.append(d)
     stds = [np.full((H, W), 0.2 * voxel) for _ in poses]
     kw = {"compile": False} if cls is AdaptiveTSDF else {}
-    saved = {}
+    saved, extracted, vol = saved_per_setting(cls, voxel, depths, stds, poses, tmp_path, "max_nearest_view_ratio", (None, 1.4))
     for ratio in (None, 1.4):
-        vol = cls(voxel, max_nearest_view_ratio=ratio, **kw)
-        integrate_all(vol, depths, stds, poses)
-        saved[ratio] = read_mesh_ply(vol.save_mesh(tmp_path / f"mesh_{ratio}.ply")).vertex.positions.numpy()
-        assert (np.abs(vol.extract_mesh().vertex.positions.numpy()[:, 2] - 3.0) < 0.2).sum() > 10
+        assert (np.abs(extracted[ratio][:, 2] - 3.0) < 0.2).sum() > 10
     far = lambda p: (np.abs(p[:, 2] - 3.0) < 0.2).sum()  # noqa: E731
     near = lambda p: (np.abs(p[:, 2] - 1.0) < 0.1).sum()  # noqa: E731
     assert far(saved[None]) > 10 and far(saved[1.4]) == 0
