@@ -9,10 +9,7 @@ from collections.abc import Iterable, Mapping
 from itertools import chain
 from pathlib import Path
 
-import numpy as np
-import torch
-
-from endorecon.fusion.tsdf import AdaptiveTSDF, PlainTSDF
+from endorecon.fusion.tsdf import AdaptiveTSDF, PlainTSDF, median_valid_depth
 from endorecon.utils.errors import InputError
 
 __all__ = ["FUSION_DEFAULTS", "build_fusion", "fuse_frames", "median_valid_depth"]
@@ -34,16 +31,6 @@ FUSION_DEFAULTS = dict(
     trunc_max_voxels=24.0, std_mode="propagate", compile=False, trunc_voxels=6.0, block_search="sampled",
     free_space_max_fraction=None, free_space_tau=0.1, max_std_ratio=None, max_nearest_view_ratio=None,
 )
-
-
-def median_valid_depth(depth, mask=None) -> float:
-    """Median of the finite, positive depths of one (H, W) frame (NaN when none)."""
-    d = torch.as_tensor(np.asarray(depth) if not isinstance(depth, torch.Tensor) else depth).float().reshape(-1)
-    ok = torch.isfinite(d) & (d > 0)
-    if mask is not None:
-        m = mask if isinstance(mask, torch.Tensor) else torch.as_tensor(np.asarray(mask))
-        ok &= m.reshape(-1).bool()
-    return float(d[ok].median()) if bool(ok.any()) else float("nan")
 
 
 def build_fusion(cfg_fusion, median_depth: float | None = None) -> AdaptiveTSDF | PlainTSDF:

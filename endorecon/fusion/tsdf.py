@@ -184,6 +184,17 @@ def drop_uncertain(mesh: o3d.t.geometry.TriangleMesh, max_std_ratio: float | Non
     return mesh.select_faces_by_mask(o3c.Tensor(keep, device=mesh.device)), info
 
 
+def median_valid_depth(depth, mask=None) -> float:
+    """Median of the finite, positive depths of one (H, W) frame, or of (N, H, W) frames with (N, H, W)
+    masks (NaN when none)."""
+    d = torch.as_tensor(np.asarray(depth) if not isinstance(depth, torch.Tensor) else depth).float().reshape(-1)
+    ok = torch.isfinite(d) & (d > 0)
+    if mask is not None:
+        m = mask if isinstance(mask, torch.Tensor) else torch.as_tensor(np.asarray(mask))
+        ok &= m.reshape(-1).bool()
+    return float(d[ok].median()) if bool(ok.any()) else float("nan")
+
+
 def pixel_band_blocks(depth: torch.Tensor, K: torch.Tensor, cam_from_world: torch.Tensor, trunc: float,
                       block_size: float) -> torch.Tensor:
     """Hash-map blocks that the truncation band of a depth map passes through, at every usable pixel.
@@ -434,9 +445,10 @@ class _TSDFBase:
 
     def median_seen_depth(self) -> float:
         """Median of the remembered frames' finite, positive depth inside their masks (NaN when none)."""
-        vals = [d[m & torch.isfinite(d) & (d > 0)] for d, m, _, _ in self._seen]
-        vals = torch.cat(vals) if vals else torch.zeros(0)
-        return float(vals.median()) if vals.numel() else float("nan")
+        if not self._seen:
+            return float("nan")
+        depth = torch.stack([d for d, _, _, _ in self._seen])
+        return median_valid_depth(depth, torch.stack([m for _, m, _, _ in self._seen]))
 
     def drop_far_only(self, mesh: o3d.t.geometry.TriangleMesh) -> o3d.t.geometry.TriangleMesh:
         """``mesh`` without the surface that no fused frame sees nearer than ``max_nearest_view_ratio`` x the fused
