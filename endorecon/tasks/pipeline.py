@@ -278,7 +278,7 @@ def refine_poses(cfg_pgo: DictConfig, seq: Sequence, cache, depth, std):
 REFINE_SETTINGS = ("fusion", "failure", "pgo")
 _NO_EFFECT = {"fusion": ("compile", "device"), "pgo": ("progress", "std_cache_mb", "flow_at_points")}
 # failure keys added since runs began to record their settings: what refine_sequence does without them
-FAILURE_ADDED_DEFAULTS = {"keep_excluded": False, "check_last_frame": False}
+FAILURE_ADDED_DEFAULTS = {"keep_excluded": False, "check_last_frame": False, "low_thresholds": None}
 
 
 def refine_settings(cfg) -> dict | None:
@@ -445,6 +445,8 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
         fused=int(keep.sum()),
         flagged=[int(f) for f in report.flagged_frames] if cfg.failure.enabled else [],
         n_flagged=len(report.flagged_frames) if cfg.failure.enabled else 0,
+        # of those, the ones flagged by the hysteresis (next to a flagged frame, over a low threshold)
+        flagged_low=report.low_flagged_frames if cfg.failure.enabled else [],
         excluded=[int(i) for i in np.flatnonzero(flagged)],  # left out of this fusion and the next iteration
         kept_out=kept_out,  # of those, the ones passed on although they passed the check (failure.keep_excluded)
         all_flagged_fused=all_flagged,  # every frame was flagged: all were fused, none left out

@@ -342,6 +342,9 @@ def infer_stage(module, seq: Sequence, cache, stamp: str, out: Path):
 
 def run(cfg: DictConfig) -> Path:
     """Run (or resume) every stage; returns the run dir."""
+    from endorecon.failure import check_low_thresholds
+
+    check_low_thresholds(cfg.failure.get("low_thresholds"), cfg.failure.get("thresholds"))  # before any stage
     out = Path(cfg.paths.run_dir)
     out.mkdir(parents=True, exist_ok=True)
     old = _read_json(out / "timings.json").get("stages", {})
@@ -507,6 +510,8 @@ def write_report(out: Path, seq: Sequence, summary: dict, depth, std, colors, st
         f"- frames: {len(seq)}, registered by SfM: {summary['registered']}, fused: {summary['fused']}",
         ("- failure detection: off (failure.enabled=false)" if failure_off else
          f"- flagged by failure detection: {summary['n_flagged']} {summary['flagged']}")
+        + (f" (of them next to a flagged frame, at a low threshold: {summary['flagged_low']})"
+           if summary.get("flagged_low") else "")
         + (f"; left out of fusion with their neighbours: {summary['excluded']}" if summary.get("excluded") else "")
         + ("; **every frame was flagged, so all registered frames were fused** (check the failure thresholds "
            "and `reconstruction/failures.csv`)" if summary.get("all_flagged_fused") else ""),

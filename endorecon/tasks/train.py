@@ -189,6 +189,9 @@ def run(cfg: DictConfig) -> float | None:
         if k not in known or not (v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))):
             raise InputError(f"bootstrap.targets.{k}={v!r}: the targets are {', '.join(known)}, each a number or null",
                              fix="pass e.g. bootstrap.targets.max_mm=1.5 (or bootstrap.targets.max_mm=null to leave it unchecked)")
+    from endorecon.failure import check_low_thresholds
+
+    check_low_thresholds(cfg.failure.get("low_thresholds"), cfg.failure.get("thresholds"))  # not after an epoch
     L.seed_everything(int(cfg.seed), workers=True)
     check_same_settings(cfg)  # before the data: a refusal should not wait for the phantom and SfM
     info = pipeline.load_sequences(cfg)

@@ -259,3 +259,74 @@ def test_tracks_outside_the_mask_are_ignored(scene):
 def test_ranges_are_clipped_to_the_sequence_and_even_interval_exclusion():
     assert _report([35], n=40).flagged_ranges(pad=10) == [(25, 39)]
     assert _report([4], n=12, interval=4).excluded_frames() == [2, 3, 4, 5, 6]
+
+
+# Hysteresis (failure.low_thresholds): the edge of a failed stretch is flagged at a lower threshold.
+
+def _stretch(scene, moderate, bad=(15, 20), moderate_scale=1.05):
+    """Network depth 20 % off on the `bad` frames (a failed stretch at the end) and 5 % off on `moderate`."""
+    depth = scene.depth.clone()
+    for f in bad:
+        depth[f] *= 1.2
+    for f in moderate:
+        depth[f] *= moderate_scale
+    return depth
+
+
+def test_hysteresis_flags_the_edge_of_a_failed_stretch_only(scene):
+    sim = scene.render(scene.cam_from_world)
+    depth = _stretch(scene, moderate=(0, 10))  # 0: moderate but alone; 10: moderate next to the failed 15
+    off = detect(scene, depth, sim, scene.cam_from_world, cfg={"low_thresholds": None})
+    assert off.flagged_frames == [15, 20] and off.low_flagged_frames == []
+    ds = dict(zip(off.frames.tolist(), off.metrics["dense_simulation"]))
+    assert ds[5] < ds[0] < 2.0 and ds[5] < ds[10] < 2.0  # the moderate ones are under the threshold
+    low = min(ds[0], ds[10]) - 0.01  # over it: both moderate frames; under it: the clean ones
+    on = detect(scene, depth, sim, scene.cam_from_world, cfg={"low_thresholds": {"dense_simulation": low}})
+    assert on.flagged_frames == [10, 15, 20]  # frame 0 is over the low threshold but has no flagged neighbour
+    assert on.low_flagged_frames == [10]
+    reasons = dict(zip(on.frames.tolist(), on.reasons))
+    assert reasons[10] == "low:dense_simulation" and reasons[0] == "" and reasons[15] == "dense_simulation"
+    assert not on.exceeded["dense_simulation"][2]  # `exceeded` stays "over the threshold itself"
+    assert "1 of them at a low threshold next to a flagged frame (10)" in on.summary()
+    # A run of frames over the low threshold joins the failure through each other: 5 makes 0 a neighbour.
+    chain = detect(scene, _stretch(scene, moderate=(0, 5, 10)), sim, scene.cam_from_world,
+                   cfg={"low_thresholds": {"dense_simulation": low}})
+    assert chain.flagged_frames == [0, 5, 10, 15, 20] and chain.low_flagged_frames == [0, 5, 10]
+    # A metric without a low threshold (null, or left out) has no hysteresis; the default (no key) is none either.
+    assert detect(scene, depth, sim, scene.cam_from_world,
+                  cfg={"low_thresholds": {"dense_simulation": None}}).flagged_frames == [15, 20]
+    other = detect(scene, depth, sim, scene.cam_from_world, cfg={"low_thresholds": {"depth_consistency": -1e9}})
+    assert other.flagged_frames == [0, 5, 10, 15, 20]  # every frame is over that one: the failure spreads to all
+    assert set(other.reasons[:3]) == {"low:depth_consistency"}
+    assert detect(scene, depth, sim, scene.cam_from_world, cfg={}).flagged_frames == [15, 20]
+    # Without a flagged frame nothing is flagged at the low threshold.
+    clean = detect(scene, _stretch(scene, moderate=(0, 10), bad=()), sim, scene.cam_from_world,
+                   cfg={"low_thresholds": {"dense_simulation": low}})
+    assert clean.flagged_frames == []
+
+
+def test_hysteresis_flags_survive_the_csv(tmp_path):
+    r = _report([5, 10])
+    r.reasons[1] = "low:dense_simulation"
+    back = FailureReport.read_csv(r.to_csv(tmp_path / "failures.csv"))
+    assert back.flagged_frames == [5, 10] and back.low_flagged_frames == [5]
+    assert not back.exceeded["dense_simulation"][1]
+
+
+@pytest.mark.parametrize("low, match", [
+    ({"dense_simulation": 2.5}, "no higher than failure.thresholds.dense_simulation"),
+    ({"dense_simulation": "x"}, "must be a number"),
+    ({"dense_simulation": True}, "must be a number"),
+    ({"dense_simulation": float("nan")}, "must be a number"),
+    ({"photometric": 1.0}, "unknown metric"),
+    (1.0, "must be a mapping"),
+])
+def test_bad_low_thresholds_are_clear_errors(low, match):
+    from endorecon.failure import check_low_thresholds
+
+    with pytest.raises(InputError, match=match):
+        check_low_thresholds(low)
+    assert check_low_thresholds(None) == {}
+    assert check_low_thresholds({"dense_simulation": None, "sparse_flow": 0.1}) == {"sparse_flow": 0.1}
+    # compared with the configured threshold, not the default
+    assert check_low_thresholds({"dense_simulation": 2.5}, {"dense_simulation": 3.0}) == {"dense_simulation": 2.5}

@@ -658,3 +658,13 @@ def test_paper_table_takes_a_fold_trained_with_other_stage_settings_as_it_is(deb
     # an iteration the fold does not have yet: train.py must make it
     assert pt.trained_with_other_stage_settings(train_cfg(root, "fold=0", "iteration=2",
                                                           "failure.keep_excluded=false")) is None
+
+
+@pytest.mark.parametrize("override", ["failure.low_thresholds.dense_simulation=3", "+failure.low_thresholds.x=1"])
+def test_bad_low_threshold_is_a_clear_error_before_any_work(tmp_path, override):
+    from endorecon.tasks.train import run
+
+    cfg = _compose("train", ["debug=fast", f"paths.root_dir={tmp_path}", override])
+    with pytest.raises(InputError, match="failure.low_thresholds"):
+        run(cfg)
+    assert not any(tmp_path.iterdir())
