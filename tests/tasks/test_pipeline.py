@@ -134,6 +134,11 @@ def test_settings_diff_names_what_changed():
     off = OmegaConf.merge(same, {"failure": {"keep_excluded": False}})
     assert settings_diff(settings_of(a), settings_of(off)) == []
     assert settings_diff(settings_of(a), settings_of(kept)) == ["failure.keep_excluded: False -> True"]
+    # so did the hysteresis: a record without it ran with none
+    low = OmegaConf.merge(same, {"failure": {"low_thresholds": {"dense_simulation": 1.0}}})
+    assert settings_diff(settings_of(a), settings_of(low)) == [
+        "failure.low_thresholds: None -> {'dense_simulation': 1.0}"]
+    assert settings_diff(settings_of(a), settings_of(OmegaConf.merge(same, {"failure": {"low_thresholds": None}}))) == []
 
 def test_sfm_cache_is_found_through_a_symlinked_data_root(tmp_path):
     """The same data through a symlink (another output root, another working directory) must reuse its SfM:
