@@ -38,7 +38,7 @@ class _Volume:
 
 
 class _Report:
-    flagged_frames, checked_frames = [], [0, 2]
+    flagged_frames, checked_frames, low_flagged_frames = [], [0, 2], []
 
     def to_csv(self, path):
         path.write_text("frame\n")
@@ -179,3 +179,13 @@ def test_std_error_correlation_uses_median_scaled_errors(monkeypatch):
     std = (depth * s - g).abs()
     out = pipeline.evaluate_depth(None, _seq_ns(8, 8), depth, std)[0]
     assert out["std_error_spearman"] > 0.99
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_frames_flagged_by_the_hysteresis_are_in_the_summary(tmp_path, monkeypatch, enabled):
+    """``flagged_low``: the checked frames the low thresholds flagged (none recorded with failure detection off)."""
+    _patch_stages(monkeypatch)
+    monkeypatch.setattr(_Report, "flagged_frames", [0, 2])
+    monkeypatch.setattr(_Report, "low_flagged_frames", [2])
+    summary = pipeline.refine_sequence(_cfg(enabled, False), _seq(_poses()), None, *_tensors(), None, tmp_path)
+    assert summary["flagged"] == ([0, 2] if enabled else []) and summary["flagged_low"] == ([2] if enabled else [])
