@@ -289,12 +289,16 @@ def test_bad_depth_cap_is_a_clear_error_before_any_work(tmp_path, cap):
     assert not any(tmp_path.iterdir())  # nothing generated or trained
 
 
-@pytest.mark.parametrize("override", ["bootstrap.targets.max_mm=abc", "+bootstrap.targets.rmse=1"])
-def test_bad_target_is_a_clear_error_before_any_work(tmp_path, override):
+@pytest.mark.parametrize("override, match", [
+    ("bootstrap.targets.max_mm=abc", "bootstrap.targets"), ("+bootstrap.targets.rmse=1", "bootstrap.targets"),
+    ("failure.low_thresholds.dense_simulation=3", "failure.low_thresholds"),
+    ("+failure.low_thresholds.x=1", "failure.low_thresholds"),
+])
+def test_bad_target_or_low_threshold_is_a_clear_error_before_any_work(tmp_path, override, match):
     from endorecon.tasks.train import run
 
     cfg = _compose("train", ["debug=fast", f"paths.root_dir={tmp_path}", override])
-    with pytest.raises(InputError, match="bootstrap.targets"):
+    with pytest.raises(InputError, match=match):
         run(cfg)
     assert not any(tmp_path.iterdir())
 
@@ -658,13 +662,3 @@ def test_paper_table_takes_a_fold_trained_with_other_stage_settings_as_it_is(deb
     # an iteration the fold does not have yet: train.py must make it
     assert pt.trained_with_other_stage_settings(train_cfg(root, "fold=0", "iteration=2",
                                                           "failure.keep_excluded=false")) is None
-
-
-@pytest.mark.parametrize("override", ["failure.low_thresholds.dense_simulation=3", "+failure.low_thresholds.x=1"])
-def test_bad_low_threshold_is_a_clear_error_before_any_work(tmp_path, override):
-    from endorecon.tasks.train import run
-
-    cfg = _compose("train", ["debug=fast", f"paths.root_dir={tmp_path}", override])
-    with pytest.raises(InputError, match="failure.low_thresholds"):
-        run(cfg)
-    assert not any(tmp_path.iterdir())
