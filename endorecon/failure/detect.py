@@ -64,7 +64,7 @@ import torch
 from endorecon.geometry import relative_pose
 from endorecon.geometry._checks import check_shape
 from endorecon.losses import dense_simulation_loss, depth_consistency_loss, sparse_flow_loss
-from endorecon.utils.errors import InputError
+from endorecon.utils.errors import InputError, finite_number
 from endorecon.utils.io import atomic_write_text
 
 METRICS = ("dense_simulation", "sparse_flow", "depth_consistency")
@@ -116,14 +116,11 @@ def check_low_thresholds(low, thresholds: Mapping | None = None) -> dict[str, fl
                              fix=fix)
         if v is None:
             continue
-        try:
-            ok = not isinstance(v, bool) and math.isfinite(float(v)) and float(v) <= float(thresholds[m])
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
+        x = finite_number(v)
+        if x is None or not x <= float(thresholds[m]):
             raise InputError(f"failure.low_thresholds.{m} must be a number no higher than failure.thresholds.{m} "
                              f"({thresholds[m]}), got {v!r}", fix=fix)
-        out[m] = float(v)
+        out[m] = x
     return out
 
 

@@ -36,15 +36,24 @@ class InputError(EndoreconError, ValueError):
         super().__init__(msg)
 
 
-def optional_number_above(value, key: str, lower: float, fix: str) -> float | None:
-    """A setting that is null or a finite number above ``lower``: None or the float; else an :class:`InputError`
-    naming ``key`` (booleans, which YAML makes of ``yes``/``no``, are not numbers here)."""
-    if value is None:
+def finite_number(value) -> float | None:
+    """``value`` as a finite float, or None when it is not one (booleans, which YAML makes of ``yes``/``no``,
+    are not numbers here)."""
+    if isinstance(value, bool):
         return None
     try:
-        ok = not isinstance(value, bool) and math.isfinite(float(value)) and float(value) > lower
+        x = float(value)
     except (TypeError, ValueError):
-        ok = False
-    if not ok:
+        return None
+    return x if math.isfinite(x) else None
+
+
+def optional_number_above(value, key: str, lower: float, fix: str) -> float | None:
+    """A setting that is null or a finite number above ``lower``: None or the float; else an :class:`InputError`
+    naming ``key`` (:func:`finite_number`)."""
+    if value is None:
+        return None
+    x = finite_number(value)
+    if x is None or not x > lower:
         raise InputError(f"{key} must be a number > {lower:g} or null, got {value!r}", fix=fix)
-    return float(value)
+    return x
