@@ -59,14 +59,11 @@ def scores(runs: list[Path]) -> None:
 
 
 def stage(a: dict[str, str]) -> None:
-    import torch
     from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
 
     import endorecon.utils.resolvers  # noqa: F401
-    from endorecon.data.dataset import load_ground_truth
     from endorecon.data.sequence import read_poses_txt
-    from endorecon.evaluation import evaluate_mesh
-    from endorecon.geometry import camera_centers
     from endorecon.tasks import pipeline
     from endorecon.tasks.reconstruct import load_module
     from endorecon.tasks.train import prepare_sequences
@@ -75,30 +72,24 @@ def stage(a: dict[str, str]) -> None:
     fold, it, patient = int(a["fold"]), int(a["iteration"]), int(a["patient"])
     fold_dir = run / "train" / f"fold={fold}"
     out_root = Path(a.get("out", "outputs/hysteresis_screen")).resolve() / f"{run.name}_f{fold}_it{it}_p{patient}"
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=[
+            f"fold={fold}", f"paths.output_root={run}", f"paths.run_dir='{fold_dir}'",
+            f"paths.data_dir={Path(a.get('data_dir', 'outputs/data')).resolve()}",
+            f"paths.cache_dir={Path(a.get('cache_dir', 'outputs/cache')).resolve()}"])
+    # the stage's inputs do not depend on the low threshold: loaded and inferred once
+    info = pipeline.load_sequences(cfg)
+    seq = [s for s in pipeline.run_sfm(cfg, info.sequences, info.root) if s.patient == patient][0]
+    prep = prepare_sequences(cfg, [seq], fold_dir / f"iteration={it - 1}" if it > 0 else None)[0]
+    module, _ = load_module(fold_dir / f"iteration={it}" / "checkpoints" / "last.ckpt")
+    depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)
+    surface = info.root / "ground_truth" / f"patient_{patient:02d}" / "mesh.ply"
     for low in a.get("lows", "off,1.0").split(","):
-        value = "null" if low == "off" else "{dense_simulation:%s}" % low
-        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-            cfg = compose(config_name="train", overrides=[
-                f"fold={fold}", f"paths.output_root={run}", f"paths.run_dir='{fold_dir}'",
-                f"paths.data_dir={Path(a.get('data_dir', 'outputs/data')).resolve()}",
-                f"paths.cache_dir={Path(a.get('cache_dir', 'outputs/cache')).resolve()}",
-                f"failure.low_thresholds={value}"])
-        info = pipeline.load_sequences(cfg)
-        seq = [s for s in pipeline.run_sfm(cfg, info.sequences, info.root) if s.patient == patient][0]
-        prep = prepare_sequences(cfg, [seq], fold_dir / f"iteration={it - 1}" if it > 0 else None)[0]
-        module, _ = load_module(fold_dir / f"iteration={it}" / "checkpoints" / "last.ckpt")
-        depth, std, colors = pipeline.infer_depth(module, prep.seq, prep.cache)
+        cfg.failure.low_thresholds = None if low == "off" else OmegaConf.create({"dense_simulation": float(low)})
         od = out_root / low
         summary = pipeline.refine_sequence(cfg, prep.seq, prep.cache, depth, std, colors, prep.excluded, od)
         _, poses = read_poses_txt(od / "poses.txt")
-        gt = load_ground_truth(info.root, patient, seq.name.split("/")[-1])
-        surface = gt.mesh_path or info.root / "ground_truth" / f"patient_{patient:02d}" / "mesh.ply"
-        ok = np.isfinite(poses).all(axis=(1, 2))
-        ev = evaluate_mesh(od / "mesh.ply", surface, od / "evaluation",
-                           cam_centers=camera_centers(torch.from_numpy(poses[ok])).numpy(),
-                           gt_cam_centers=camera_centers(torch.from_numpy(gt.cam_from_world[ok])).numpy(),
-                           cam_rotations=poses[ok, :3, :3], gt_cam_rotations=gt.cam_from_world[ok, :3, :3],
-                           overwrite=True)
+        ev = pipeline.evaluate_against_ct(info.root, prep.seq, od / "mesh.ply", poses, od / "evaluation", surface)
         print(f"{run.name} fold {fold} iteration {it} patient {patient}, low threshold {low}: flagged "
               f"{summary['flagged']} (hysteresis {summary.get('flagged_low')}), mean / max {ev['mean_mm']:.3f} / "
               f"{ev['max_mm']:.3f} mm, {ev['ct_covered_mm2'] / 100:.1f} cm2", flush=True)

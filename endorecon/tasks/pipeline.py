@@ -467,20 +467,24 @@ def refine_sequence(cfg: DictConfig, seq: Sequence, cache, depth, std, colors, e
 
 # --------------------------------------------------------------- evaluation
 def evaluate_against_ct(data_root: Path, seq: Sequence, mesh_path: Path, cam_from_world: np.ndarray,
-                        out_dir: Path) -> dict | None:
+                        out_dir: Path, reference: Path | None = None) -> dict | None:
     """Residuals (mm) of a sequence's mesh against its patient's CT, registered with a similarity that is
-    initialised from the camera trajectory.  None for patients without CT.  The only reader of ground truth."""
+    initialised from the camera trajectory.  None for patients without CT.  The only reader of ground truth.
+
+    ``reference``: another surface in the CT's frame instead (analyses of train-only patients pass their
+    phantom surface, which no run reads)."""
     from endorecon.data.dataset import load_ground_truth
     from endorecon.evaluation import evaluate_mesh
     from endorecon.geometry import camera_centers
 
     gt = load_ground_truth(data_root, seq.patient, seq.name.split("/")[-1])
-    if gt.mesh_path is None:
+    reference = reference or gt.mesh_path
+    if reference is None:
         return None
     ok = np.isfinite(cam_from_world).all(axis=(1, 2))
     centers = camera_centers(torch.from_numpy(cam_from_world[ok])).numpy()
     gt_centers = camera_centers(torch.from_numpy(gt.cam_from_world[ok])).numpy()
-    return evaluate_mesh(mesh_path, gt.mesh_path, out_dir, cam_centers=centers, gt_cam_centers=gt_centers,
+    return evaluate_mesh(mesh_path, reference, out_dir, cam_centers=centers, gt_cam_centers=gt_centers,
                          cam_rotations=cam_from_world[ok, :3, :3], gt_cam_rotations=gt.cam_from_world[ok, :3, :3])
 
 

@@ -553,3 +553,21 @@ def test_results_table_of_some_folds_keeps_the_other_folds_rows(tmp_path, monkey
     assert [r for r in after if r["patient"] != 1] == [r for r in first if r["patient"] != 1]
     assert [r["mean_mm"] for r in after if r["patient"] == 1] == [9.0, 8.0]
     assert md_before.splitlines()[2] == (table_dir / "results.md").read_text().splitlines()[2]  # patient 0 as before
+
+
+def test_evaluate_against_ct_uses_a_given_reference_surface(monkeypatch, tmp_path):
+    """A train-only patient (no CT) is not evaluated unless an analysis passes its surface explicitly."""
+    import types
+    from pathlib import Path
+
+    import endorecon.data.dataset as dataset
+    import endorecon.evaluation as evaluation
+
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    monkeypatch.setattr(dataset, "load_ground_truth",
+                        lambda root, patient, seq: types.SimpleNamespace(mesh_path=None, cam_from_world=poses))
+    monkeypatch.setattr(evaluation, "evaluate_mesh", lambda mesh, ref, out, **k: {"reference": Path(ref)})
+    seq = types.SimpleNamespace(patient=9, name="patient_09/seq_00")
+    assert pipeline.evaluate_against_ct(tmp_path, seq, tmp_path / "m.ply", poses, tmp_path / "ev") is None
+    got = pipeline.evaluate_against_ct(tmp_path, seq, tmp_path / "m.ply", poses, tmp_path / "ev", tmp_path / "s.ply")
+    assert got == {"reference": tmp_path / "s.ply"}
